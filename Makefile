@@ -1,0 +1,33 @@
+# The two commands of the README: `make demo` (the main job) and `make test`. Both set up .venv first.
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.pivla-setup
+
+.PHONY: setup setup-libero test test-slow demo demo-quick firmware clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh
+	touch $(STAMP)
+
+setup-libero: $(STAMP)
+	bash scripts/setup-libero.sh
+
+test: setup setup-libero
+	$(PY) -m pytest -q
+
+test-slow: setup setup-libero
+	$(PY) -m pytest -q -m slow
+
+demo: setup
+	$(VENV)/bin/pivla demo --out runs/demo
+
+demo-quick: setup
+	$(VENV)/bin/pivla demo --out runs/demo-quick --quick
+
+firmware:
+	$(MAKE) -C firmware
+
+clean:
+	rm -rf runs build dist *.egg-info

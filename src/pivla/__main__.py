@@ -1,0 +1,5 @@
+import sys
+
+from pivla.cli import main
+
+sys.exit(main())

@@ -1,0 +1,213 @@
+"""From episodes to training samples: chunk targets with padding masks, next-observation targets,
+episode-level splits and the advantage table of the RL term.
+
+Everything random is drawn from generators seeded by (seed, step, rank), so a batch is a pure function of
+the step: resuming a run replays exactly the batches an uninterrupted run would have seen.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pivla.data.format import DatasetError, Episode
+from pivla.data.normalize import ActionStats, NormStats, StandardStats
+from pivla.data.text import WordTokenizer
+from pivla.model.config import ModelConfig
+from pivla.model.tokenizer import encode
+
+
+def split_episodes(episodes: list[Episode], val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
+    """Episode-level split (never frames of one episode on both sides), stratified by instruction so
+    every task is represented in validation when it has at least two episodes."""
+    rng = np.random.default_rng(seed)
+    by_task: dict[str, list[int]] = {}
+    for i, ep in enumerate(episodes):
+        by_task.setdefault(ep.instruction, []).append(i)
+    train, val = [], []
+    for idx in by_task.values():
+        idx = list(rng.permutation(idx))
+        n_val = int(round(len(idx) * val_fraction)) if len(idx) > 1 else 0
+        if val_fraction > 0 and len(idx) > 1:
+            n_val = max(n_val, 1)
+        val += idx[:n_val]
+        train += idx[n_val:]
+    return sorted(train), sorted(val)
+
+
+def proprio_vector(obs: dict[str, np.ndarray], keys: tuple[str, ...]) -> np.ndarray:
+    """Concatenate the proprioceptive observation keys (time-major or single step)."""
+    try:
+        return np.concatenate([np.asarray(obs[k], np.float32) for k in keys], axis=-1)
+    except KeyError as e:
+        raise DatasetError(f"observation is missing proprio key {e.args[0]!r} (needed: {list(keys)})") from None
+
+
+def resize_images(images: np.ndarray, size: int) -> np.ndarray:
+    """(..., H, W, 3) uint8 -> (..., size, size, 3) uint8 with area interpolation (a no-op when equal)."""
+    if images.shape[-3] == size and images.shape[-2] == size:
+        return images
+    flat = images.reshape(-1, *images.shape[-3:])
+    out = np.stack([cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA) for im in flat])
+    return out.reshape(*images.shape[:-3], size, size, 3)
+
+
+def fit_norm_stats(episodes: list[Episode], cfg: ModelConfig) -> NormStats:
+    actions = np.concatenate([ep.actions for ep in episodes])
+    proprio = np.concatenate([proprio_vector(ep.obs, cfg.proprio_keys) for ep in episodes])
+    if proprio.shape[-1] != cfg.proprio_dim:
+        raise DatasetError(f"proprio keys {cfg.proprio_keys} give {proprio.shape[-1]} dims, config says {cfg.proprio_dim}")
+    return NormStats(action=ActionStats.fit(actions), proprio=StandardStats.fit(proprio))
+
+
+@dataclass
+class PreparedEpisode:
+    images: np.ndarray  # (T, n_cam, S, S, 3) uint8
+    proprio: np.ndarray  # (T, P) normalized
+    actions: np.ndarray  # (T, D) normalized to [-1, 1]
+    bins: np.ndarray  # (T, D) int64
+    rewards: np.ndarray
+    dones: np.ndarray
+    text_ids: np.ndarray
+    text_mask: np.ndarray
+    imitate: bool  # expert or successful episodes feed the imitation terms
+
+
+def prepare_episode(ep: Episode, cfg: ModelConfig, stats: NormStats, text: WordTokenizer) -> PreparedEpisode:
+    missing = [c for c in cfg.cameras if c not in ep.obs]
+    if missing:
+        raise DatasetError(f"episode {ep.instruction!r} lacks camera(s) {missing} the policy uses")
+    images = np.stack([resize_images(ep.obs[c], cfg.image_size) for c in cfg.cameras], axis=1)
+    actions = stats.action.normalize(ep.actions)
+    if not np.isfinite(ep.actions).all():
+        raise DatasetError(f"episode {ep.instruction!r} has non-finite actions")
+    ids, mask = text.encode(ep.instruction)
+    return PreparedEpisode(
+        images=images,
+        proprio=stats.proprio.normalize(proprio_vector(ep.obs, cfg.proprio_keys)).astype(np.float32),
+        actions=actions,
+        bins=encode(actions, cfg.n_bins),
+        rewards=ep.rewards.astype(np.float32),
+        dones=ep.dones.astype(np.float32),
+        text_ids=ids,
+        text_mask=mask,
+        imitate=bool(ep.success) or ep.source == "expert",
+    )
+
+
+def gae(rewards: np.ndarray, values: np.ndarray, dones: np.ndarray, gamma: float, lam: float,
+        bootstrap: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised advantage estimation over one episode (paper Eq. 11).
+
+    delta_t = r_t + gamma * (1 - done_t) * V(s_{t+1}) - V(s_t);  A_t = delta_t + gamma * lam * (1 - done_t) * A_{t+1}.
+    ``values`` holds V(s_t) for every step; V after the last step is ``bootstrap`` (0 for an episode that
+    ended). Returns (advantages, lambda-returns = advantages + values).
+    """
+    T = len(rewards)
+    adv = np.zeros(T, np.float32)
+    next_value, next_adv = bootstrap, 0.0
+    for t in range(T - 1, -1, -1):
+        nonterminal = 1.0 - float(dones[t])
+        delta = rewards[t] + gamma * nonterminal * next_value - values[t]
+        next_adv = delta + gamma * lam * nonterminal * next_adv
+        adv[t] = next_adv
+        next_value = values[t]
+    return adv, adv + values.astype(np.float32)
+
+
+class ChunkDataset:
+    """Samples (o_t, l, chunk a_{t:t+K}, next-observation targets, advantages, returns)."""
+
+    def __init__(self, episodes: list[PreparedEpisode], cfg: ModelConfig, sp_steps: int = 2):
+        if not episodes:
+            raise DatasetError("no episodes to train on")
+        self.episodes = episodes
+        self.cfg = cfg
+        self.sp_steps = sp_steps
+        self.index = np.array([(e, t) for e, ep in enumerate(episodes) for t in range(len(ep.actions))], np.int64)
+        # RL tables, refreshed by the trainer from the value head; zeros until the first refresh
+        self.advantages = [np.zeros(len(ep.actions), np.float32) for ep in episodes]
+        self.returns = [np.zeros(len(ep.actions), np.float32) for ep in episodes]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def set_values(self, values: list[np.ndarray], gamma: float, lam: float) -> None:
+        """Recompute GAE advantages (normalised over the dataset) and lambda-returns from V(s_t) tables."""
+        advs, rets = zip(*(gae(ep.rewards, v, ep.dones, gamma, lam) for ep, v in zip(self.episodes, values)))
+        flat = np.concatenate(advs)
+        mu, sd = flat.mean(), flat.std() + 1e-6
+        self.advantages = [((a - mu) / sd).astype(np.float32) for a in advs]
+        self.returns = list(rets)
+
+    def observation(self, e: int, t: int) -> dict[str, np.ndarray]:
+        ep = self.episodes[e]
+        return {"images": ep.images[t], "proprio": ep.proprio[t], "text_ids": ep.text_ids, "text_mask": ep.text_mask}
+
+    def sample(self, i: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        e, t = self.index[i]
+        ep = self.episodes[e]
+        T, K, H = len(ep.actions), self.cfg.chunk, self.cfg.horizon
+        steps = np.arange(t, t + K)
+        valid = steps < T
+        idx = np.minimum(steps, T - 1)
+        # values: state after k actions, k = 0..H; valid while t + k <= T - 1 (terminal state value is 0)
+        vsteps = np.arange(t, t + H + 1)
+        vvalid = vsteps < T
+        ret = np.where(vvalid, self.returns[e][np.minimum(vsteps, T - 1)], 0.0).astype(np.float32)
+        # next-observation targets for L_SP: a few random chunk steps k (1..K) with o_{t+k} inside the episode
+        n_future = min(K, T - 1 - t)
+        if n_future > 0:
+            ks = rng.choice(np.arange(1, n_future + 1), size=self.sp_steps, replace=n_future < self.sp_steps)
+            sp_mask = np.ones(self.sp_steps, np.float32)
+        else:
+            ks = np.ones(self.sp_steps, np.int64)
+            sp_mask = np.zeros(self.sp_steps, np.float32)
+        future = ep.images[np.minimum(t + ks, T - 1)]
+        return {
+            **self.observation(e, t),
+            "actions": ep.actions[idx],
+            "bins": ep.bins[idx],
+            "action_mask": valid.astype(np.float32),
+            "imitate": np.float32(ep.imitate),
+            "advantages": np.where(valid, self.advantages[e][idx], 0.0).astype(np.float32),
+            "returns": ret,
+            "value_mask": vvalid.astype(np.float32),
+            "sp_index": (ks - 1).astype(np.int64),
+            "sp_images": future,
+            "sp_mask": sp_mask,
+        }
+
+
+def augment_shift(images: np.ndarray, rng: np.random.Generator, pad: int) -> np.ndarray:
+    """Random-shift augmentation (pad by replication, crop back), one shift per image; robust to camera jitter."""
+    if pad <= 0:
+        return images
+    *lead, H, W, C = images.shape
+    flat = images.reshape(-1, H, W, C)
+    padded = np.pad(flat, ((0, 0), (pad, pad), (pad, pad), (0, 0)), mode="edge")
+    dx, dy = rng.integers(0, 2 * pad + 1, size=(2, len(flat)))
+    out = np.stack([padded[i, dy[i] : dy[i] + H, dx[i] : dx[i] + W] for i in range(len(flat))])
+    return out.reshape(*lead, H, W, C)
+
+
+def collate(samples: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    return {k: np.stack([s[k] for s in samples]) for k in samples[0]}
+
+
+def epoch_batch_indices(n: int, batch: int, step: int, seed: int, rank: int = 0, world: int = 1) -> np.ndarray:
+    """Indices of the batch a rank sees at ``step``: epoch-wise permutations seeded by (seed, epoch)."""
+    start = step * batch * world + rank * batch
+    out = np.empty(batch, np.int64)
+    for j in range(batch):
+        epoch, offset = divmod(start + j, n)
+        out[j] = _permutation(n, seed, epoch)[offset]
+    return out
+
+
+@functools.lru_cache(maxsize=4)
+def _permutation(n: int, seed: int, epoch: int) -> np.ndarray:
+    return np.random.default_rng([seed, epoch]).permutation(n)

@@ -1,0 +1,205 @@
+"""Episode files in the layout of LIBERO's official demonstration HDF5 files.
+
+A dataset is a directory of ``.hdf5`` files. Each file holds::
+
+    data/                         attrs: problem_info (JSON with "language_instruction"), [pivla_version]
+    data/demo_<i>/                attrs: num_samples, [language_instruction], [success], [source]
+        actions        (T, 7) float   end-effector delta (xyz, Euler rpy, gripper)
+        rewards        (T,)   float
+        dones          (T,)   uint8/bool
+        obs/agentview_rgb    (T, H, W, 3) uint8
+        obs/eye_in_hand_rgb  (T, H, W, 3) uint8   (optional)
+        obs/ee_pos (T, 3), obs/ee_ori (T, 3), obs/gripper_states (T, 2), obs/joint_states (T, J)
+
+The per-demo attributes in brackets are pivla's extensions; files without them (LIBERO's own) load with
+the file-level instruction and ``success=True``. See docs/dataset.md.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+IMAGE_KEYS = ("agentview_rgb", "eye_in_hand_rgb")
+LOW_DIM_KEYS = ("ee_pos", "ee_ori", "gripper_states", "joint_states")
+REQUIRED_DEMO_KEYS = ("actions", "rewards", "dones", "obs/agentview_rgb")
+ACTION_DIM = 7
+
+
+class DatasetError(ValueError):
+    """A dataset file is unreadable, truncated, or does not follow the layout; the message names both."""
+
+
+@dataclass
+class Episode:
+    """One demonstration or rollout, time-major arrays of equal length T."""
+
+    actions: np.ndarray
+    obs: dict[str, np.ndarray]
+    instruction: str
+    rewards: np.ndarray | None = None
+    dones: np.ndarray | None = None
+    success: bool = True
+    source: str = "expert"
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.actions = np.asarray(self.actions, dtype=np.float32)
+        T = len(self.actions)
+        if self.actions.ndim != 2 or self.actions.shape[1] != ACTION_DIM:
+            raise DatasetError(f"actions must have shape (T, {ACTION_DIM}), got {self.actions.shape}")
+        if self.rewards is None:
+            self.rewards = np.zeros(T, np.float32)
+            if self.success and T:
+                self.rewards[-1] = 1.0
+        if self.dones is None:
+            self.dones = np.zeros(T, np.uint8)
+            if T:
+                self.dones[-1] = 1
+        self.rewards = np.asarray(self.rewards, dtype=np.float32)
+        self.dones = np.asarray(self.dones, dtype=np.uint8)
+        for name, arr in [("rewards", self.rewards), ("dones", self.dones), *self.obs.items()]:
+            if len(arr) != T:
+                raise DatasetError(f"{name} has {len(arr)} steps but actions have {T}")
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+def _atomic_target(path: Path) -> tuple[int, str]:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+
+
+def write_episodes(path: str | Path, episodes: list[Episode], env_meta: dict | None = None) -> Path:
+    """Write episodes to one HDF5 file atomically (temp file + rename), so a crash never leaves half a file."""
+    path = Path(path)
+    if not episodes:
+        raise DatasetError(f"{path}: refusing to write a file with no episodes")
+    fd, tmp = _atomic_target(path)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as f:
+            data = f.create_group("data")
+            data.attrs["problem_info"] = json.dumps({"language_instruction": episodes[0].instruction})
+            data.attrs["env_args"] = json.dumps(env_meta or {})
+            data.attrs["pivla_version"] = 1
+            total = 0
+            for i, ep in enumerate(episodes):
+                g = data.create_group(f"demo_{i}")
+                g.attrs["num_samples"] = len(ep)
+                g.attrs["language_instruction"] = ep.instruction
+                g.attrs["success"] = bool(ep.success)
+                g.attrs["source"] = ep.source
+                if ep.meta:
+                    g.attrs["meta"] = json.dumps(ep.meta)
+                g.create_dataset("actions", data=ep.actions)
+                g.create_dataset("rewards", data=ep.rewards)
+                g.create_dataset("dones", data=ep.dones)
+                obs = g.create_group("obs")
+                for key, arr in ep.obs.items():
+                    arr = np.asarray(arr)
+                    if key in IMAGE_KEYS:
+                        obs.create_dataset(key, data=arr, chunks=(1, *arr.shape[1:]), compression="lzf")
+                    else:
+                        obs.create_dataset(key, data=arr)
+                total += len(ep)
+            data.attrs["total"] = total
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _demo_sort_key(name: str) -> tuple[int, str]:
+    suffix = name.rsplit("_", 1)[-1]
+    return (int(suffix), name) if suffix.isdigit() else (1 << 30, name)
+
+
+def read_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> list[Episode]:
+    """Read every ``demo_*`` of one file. ``obs_keys`` limits (and requires) the observation keys loaded."""
+    path = Path(path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise DatasetError(f"{path}: not a readable HDF5 file ({e})") from e
+    episodes = []
+    with f:
+        if "data" not in f:
+            raise DatasetError(f"{path}: missing key 'data'")
+        data = f["data"]
+        try:
+            problem = json.loads(data.attrs.get("problem_info", "{}"))
+        except (TypeError, json.JSONDecodeError) as e:
+            raise DatasetError(f"{path}: attribute data.problem_info is not valid JSON") from e
+        file_instruction = problem.get("language_instruction", "")
+        if isinstance(file_instruction, list):  # some LIBERO files store it as a list of words
+            file_instruction = " ".join(file_instruction)
+        demos = sorted((k for k in data.keys() if k.startswith("demo")), key=_demo_sort_key)
+        if not demos:
+            raise DatasetError(f"{path}: group 'data' holds no demo_<i> groups")
+        for name in demos:
+            g = data[name]
+            for key in REQUIRED_DEMO_KEYS:
+                if key not in g:
+                    raise DatasetError(f"{path}: missing key 'data/{name}/{key}'")
+            keys = obs_keys if obs_keys is not None else tuple(g["obs"].keys())
+            obs = {}
+            try:
+                for key in keys:
+                    if key not in g["obs"]:
+                        raise DatasetError(f"{path}: missing key 'data/{name}/obs/{key}'")
+                    obs[key] = g["obs"][key][()]
+                instruction = g.attrs.get("language_instruction", file_instruction)
+                if isinstance(instruction, bytes):
+                    instruction = instruction.decode()
+                ep = Episode(
+                    actions=g["actions"][()],
+                    rewards=g["rewards"][()],
+                    dones=g["dones"][()],
+                    obs=obs,
+                    instruction=str(instruction),
+                    success=bool(g.attrs.get("success", True)),
+                    source=str(g.attrs.get("source", "expert")),
+                    meta=json.loads(g.attrs["meta"]) if "meta" in g.attrs else {},
+                )
+            except DatasetError as e:
+                raise DatasetError(f"{path}: data/{name}: {e}") if not str(e).startswith(str(path)) else e
+            except (OSError, KeyError, ValueError) as e:
+                raise DatasetError(f"{path}: data/{name} is truncated or corrupt ({e})") from e
+            img = obs.get("agentview_rgb")
+            if img is not None and (img.ndim != 4 or img.shape[-1] != 3 or img.dtype != np.uint8):
+                raise DatasetError(
+                    f"{path}: data/{name}/obs/agentview_rgb must be (T,H,W,3) uint8, got {img.shape} {img.dtype}"
+                )
+            episodes.append(ep)
+    return episodes
+
+
+def dataset_files(root: str | Path) -> list[Path]:
+    """The ``.hdf5`` files of a dataset directory (or the file itself), sorted for reproducibility."""
+    root = Path(root)
+    if root.is_file():
+        return [root]
+    if not root.is_dir():
+        raise DatasetError(f"{root}: dataset directory does not exist")
+    files = sorted(p for p in root.rglob("*.hdf5") if not p.name.startswith("."))
+    if not files:
+        raise DatasetError(f"{root}: no .hdf5 files found")
+    return files
+
+
+def read_dataset(root: str | Path, obs_keys: tuple[str, ...] | None = None) -> list[Episode]:
+    """All episodes of all files below ``root``, in file order then demo order."""
+    episodes: list[Episode] = []
+    for path in dataset_files(root):
+        episodes.extend(read_episodes(path, obs_keys))
+    return episodes

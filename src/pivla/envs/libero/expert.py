@@ -1,0 +1,373 @@
+"""Scripted pick-and-place experts with privileged simulator state, for LIBERO-Spatial and LIBERO-Object.
+
+They exist so that demonstrations can be made offline. Each task of those suites is "pick X, put it on /
+in Y" (the BDDL goal ``(On X Y)`` or ``(In X Y_contain_region)``). The expert reads the goal, the objects'
+collision geometry and poses from MuJoCo, and plans:
+
+- a grasp: concave objects (bowls: a ray straight down through the centre lands near the bottom) are
+  grasped by the rim, with the fingers closing radially; the rim angle is chosen by casting vertical rays
+  over the fingers' footprint so that no other body (drawer walls, the cookie box, the ramekin) stands
+  above the fingertips. Convex objects (cans, bottles, boxes) are grasped from the top, across their
+  narrowest horizontal side;
+- a lift high enough to clear every body between the pick and the place;
+- a release with the object's bottom just above the target's top (plate) or well inside it (basket).
+
+Motion is closed-loop proportional control of the end effector towards waypoints, in LIBERO's own
+action space (OSC_POSE deltas, 0.05 m / 0.5 rad at full scale), so recorded actions are what a policy
+has to output.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from pivla.envs.libero._backend import libero
+
+POS_SCALE = 0.05  # metres per unit of position action (OSC_POSE output_max)
+ROT_SCALE = 0.5  # radians per unit of rotation action
+TIP_BELOW_EEF = 0.013  # the fingers' lowest point below robosuite's eef site (measured on the Panda gripper)
+PAD_HALF_OPEN = 0.042  # finger pad distance from the gripper axis, fully open
+FINGER_OUTER_OPEN = 0.068  # outer face of a finger from the gripper axis, fully open
+FINGER_HALF_WIDTH = 0.013  # finger half-width across the closing direction
+
+# Gripper pointing down (robosuite's neutral Panda pose): x forward, fingers closing along world y.
+R_DOWN = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass(frozen=True)
+class ExpertConfig:
+    """Gains and margins of the scripted expert (one set for every task; nothing is tuned per task)."""
+
+    pos_gain: float = 1.6  # action = gain * error / POS_SCALE, clipped
+    rot_gain: float = 1.0
+    max_pos_action: float = 1.0
+    pos_tol: float = 0.008  # waypoint reached (m)
+    ori_tol: float = 0.08  # orientation reached (rad)
+    approach_above: float = 0.07  # pre-grasp height above the grasp point (m)
+    rim_depth: float = 0.012  # fingertips below the rim top for a rim grasp (m)
+    top_depth: float = 0.03  # fingertips below the object's top for a top grasp (m)
+    floor_clearance: float = 0.006  # fingertips never lower than this above the surface under the object (m)
+    lift_clearance: float = 0.06  # object bottom above the highest body on the way (m)
+    place_above: float = 0.015  # object bottom above the target's top at release, "on" goals (m)
+    drop_above: float = 0.01  # object bottom above the container's rim at release, "in" goals (m)
+    travel_clearance: float = 0.07  # eef above the highest body on the way to the pre-grasp (m)
+    max_attempts: int = 3  # grasps retried when the object did not come up
+    close_steps: int = 12
+    open_steps: int = 8
+    waypoint_timeout: int = 60  # steps before a waypoint is abandoned and the next one starts
+
+
+class _Scene:
+    """Collision geometry of the MuJoCo model, grouped by top-level body (objects, fixtures, robot)."""
+
+    def __init__(self, rs_env: Any) -> None:
+        self.mj = libero().mujoco
+        self.m = rs_env.sim.model._model
+        self.d = rs_env.sim.data._data
+        m = self.m
+        self.collide = (m.geom_contype | m.geom_conaffinity) > 0
+        self.root_of_geom = m.body_rootid[m.geom_bodyid]
+        robot_bodies = [b for b in range(m.nbody) if self._body_name(b).startswith(("robot0", "gripper0", "mount0"))]
+        self.robot_roots = {int(m.body_rootid[b]) for b in robot_bodies}
+
+    def _body_name(self, b: int) -> str:
+        return self.mj.mj_id2name(self.m, self.mj.mjtObj.mjOBJ_BODY, b) or ""
+
+    def root(self, body_name: str) -> int:
+        b = self.mj.mj_name2id(self.m, self.mj.mjtObj.mjOBJ_BODY, body_name)
+        if b < 0:
+            raise KeyError(f"no body {body_name!r} in the LIBERO scene")
+        return int(self.m.body_rootid[b])
+
+    def geoms(self, root: int) -> np.ndarray:
+        return np.flatnonzero((self.root_of_geom == root) & self.collide)
+
+    def corners(self, geoms: np.ndarray) -> np.ndarray:
+        """World coordinates of the corners of each geom's local bounding box, (8 * n, 3)."""
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+        pts = []
+        for g in geoms:
+            local = self.m.geom_aabb[g, :3] + self.m.geom_aabb[g, 3:] * signs
+            pts.append(self.d.geom_xpos[g] + local @ self.d.geom_xmat[g].reshape(3, 3).T)
+        return np.concatenate(pts)
+
+    def aabb(self, root: int) -> tuple[np.ndarray, np.ndarray]:
+        pts = self.corners(self.geoms(root))
+        return pts.min(0), pts.max(0)
+
+    def body_frame_extent(self, root: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(centre in world, half sizes, world xy axes) of the object's box in its own yaw frame."""
+        rot = self.d.xmat[root].reshape(3, 3)
+        yaw = np.arctan2(rot[1, 0], rot[0, 0])
+        axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+        pts = self.corners(self.geoms(root))
+        local = pts[:, :2] @ axes.T
+        lo, hi = local.min(0), local.max(0)
+        centre_xy = ((lo + hi) / 2) @ axes
+        z = (pts[:, 2].min() + pts[:, 2].max()) / 2
+        half = np.array([*(hi - lo) / 2, (pts[:, 2].max() - pts[:, 2].min()) / 2])
+        return np.array([*centre_xy, z]), half, axes
+
+    def ray_down(self, xy: np.ndarray, z_from: float) -> tuple[float, int]:
+        """Height and top-level body of the first non-robot collision geom below (x, y, z_from)."""
+        pnt = np.array([xy[0], xy[1], z_from], dtype=np.float64)
+        vec = np.array([0.0, 0.0, -1.0])
+        geomid = np.zeros(1, dtype=np.int32)
+        groups = np.array([1, 0, 0, 0, 0, 0], dtype=np.uint8)  # robosuite puts collision geoms in group 0
+        while True:
+            dist = self.mj.mj_ray(self.m, self.d, pnt, vec, groups, 1, -1, geomid)
+            if dist < 0:
+                return -np.inf, -1
+            root = int(self.root_of_geom[geomid[0]])
+            hit = pnt[2] - dist
+            if root not in self.robot_roots:
+                return hit, root
+            pnt[2] = hit - 1e-4
+
+
+def _yaw_rotation(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_DOWN
+
+
+def _closing_yaw(direction_xy: np.ndarray) -> float:
+    """Gripper yaw whose finger-closing axis is parallel to ``direction_xy``, the smallest rotation from neutral."""
+    theta = np.arctan2(direction_xy[1], direction_xy[0])
+    yaw = theta + np.pi / 2  # neutral closing axis is world y: yaw by theta - 90 deg, modulo pi
+    return float((yaw + np.pi / 2) % np.pi - np.pi / 2)
+
+
+def _rotation_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Axis-angle (world frame) taking ``current`` to ``target``."""
+    r = target @ current.T
+    angle = np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))
+    if angle < 1e-6:
+        return np.zeros(3)
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    norm = np.linalg.norm(axis)
+    if norm < 1e-6:  # angle ~ pi: take the axis from the symmetric part
+        axis = np.sqrt(np.clip((np.diag(r) + 1) / 2, 0, None))
+        norm = np.linalg.norm(axis)
+    return axis / norm * angle
+
+
+@dataclass
+class _Plan:
+    grasp: np.ndarray  # eef position at the grasp
+    yaw: float
+    lift_z: float  # eef height for the transfer
+
+
+class PickPlaceExpert:
+    """Scripted expert for one "pick X and put it on/in Y" task; call it as ``expert(env, obs) -> action``.
+
+    It plans when it sees a new episode (``env.episode_id`` changes) and then runs a fixed sequence of
+    waypoints with closed-loop proportional control.
+    """
+
+    def __init__(self, config: ExpertConfig = ExpertConfig()) -> None:
+        self.config = config
+        self._episode: int | None = None
+
+    def _setup(self, env: Any) -> None:
+        rs = env.robosuite_env
+        goal = rs.parsed_problem["goal_state"]
+        if len(goal) != 1 or goal[0][0].lower() not in ("on", "in"):
+            raise ValueError(f"the scripted expert handles one On/In goal; task goal is {goal}")
+        _, obj_name, target_name = goal[0]
+        self.scene = _Scene(rs)
+        self.obj = self.scene.root(rs.objects_dict[obj_name].root_body)
+        target_key = target_name.removesuffix("_contain_region")
+        target = rs.objects_dict.get(target_key) or rs.fixtures_dict.get(target_key)
+        if target is None:
+            raise ValueError(f"goal target {target_name!r} is not an object or fixture of the scene")
+        self.target = self.scene.root(target.root_body)
+        self.into = goal[0][0].lower() == "in"
+        self._episode = env.episode_id
+
+    # ---- planning -------------------------------------------------------------------------------------
+
+    def _plan_grasp(self) -> _Plan:
+        sc, cfg = self.scene, self.config
+        centre, half, axes = sc.body_frame_extent(self.obj)
+        lo, hi = sc.aabb(self.obj)
+        z_top = hi[2]
+        hit, root = sc.ray_down(centre[:2], z_top + 0.05)
+        concave = root == self.obj and hit < z_top - 0.5 * (z_top - lo[2])
+        if concave:
+            return self._plan_rim(centre, half, lo, hi)
+        # Convex object: grasp across the narrow side, fingertips a little below the top.
+        narrow = axes[int(np.argmin(half[:2]))]
+        floor_z = self._floor_below(lo, hi)
+        tip_z = max(z_top - cfg.top_depth, floor_z + cfg.floor_clearance)
+        grasp = np.array([centre[0], centre[1], tip_z + TIP_BELOW_EEF])
+        return _Plan(grasp, _closing_yaw(narrow), self._lift_height(grasp))
+
+    def _floor_below(self, lo: np.ndarray, hi: np.ndarray) -> float:
+        """Height of the surface the object rests on (rays just outside its footprint, ignoring itself)."""
+        sc = self.scene
+        zs = []
+        for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            xy = (lo[:2] + hi[:2]) / 2 + np.array([dx, dy]) * ((hi[:2] - lo[:2]) / 2 + 0.01)
+            z, _ = sc.ray_down(xy, hi[2] + 0.01)
+            zs.append(z)
+        return max(min(zs), lo[2]) if np.isfinite(min(zs)) else lo[2]
+
+    def _plan_rim(self, centre: np.ndarray, half: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> _Plan:
+        """Pick the rim angle where both fingers can go deepest: nothing (the bowl itself included) under them."""
+        sc, cfg = self.scene, self.config
+        radius = float(np.mean(half[:2]))
+        origin = self.scene.d.xpos[self.obj][:2].copy()
+        best: tuple[float, float, np.ndarray] | None = None
+        finger_r = np.linspace(PAD_HALF_OPEN - 0.008, FINGER_OUTER_OPEN - 0.004, 4)
+        for theta in np.linspace(0, 2 * np.pi, 24, endpoint=False):
+            radial = np.array([np.cos(theta), np.sin(theta)])
+            tangent = np.array([-radial[1], radial[0]])
+            # The rim top is the bowl's highest point along this radial line (robust to a tilted bowl).
+            rim_top, rim_xy = -np.inf, None
+            for r in np.linspace(0.3 * radius, 1.2 * radius, 19):
+                xy = origin + radial * r
+                z, root = sc.ray_down(xy, hi[2] + 0.05)
+                if root == self.obj and z > rim_top:
+                    rim_top, rim_xy = z, xy
+            if rim_xy is None:
+                continue
+            # Highest surface of anything under either finger (the bowl's own walls count too).
+            under = -np.inf
+            for r in np.concatenate([finger_r, -finger_r]):
+                for t in (-FINGER_HALF_WIDTH, 0.0, FINGER_HALF_WIDTH):
+                    z, _ = sc.ray_down(rim_xy + radial * r + tangent * t, hi[2] + 0.1)
+                    under = max(under, z)
+            tip_z = max(rim_top - cfg.rim_depth, under + 0.004)
+            depth = rim_top - tip_z
+            yaw = _closing_yaw(radial)
+            score = min(depth, cfg.rim_depth) - 0.004 * abs(yaw)
+            if best is None or score > best[0]:
+                best = (score, yaw, np.array([*rim_xy, tip_z + TIP_BELOW_EEF]))
+        if best is None:
+            raise RuntimeError("no rim point of the bowl is visible from above")
+        _, yaw, grasp = best
+        return _Plan(grasp, yaw, self._lift_height(grasp))
+
+    def _lift_height(self, grasp: np.ndarray) -> float:
+        """Eef height at which the held object's bottom clears every body between pick and place."""
+        lo, hi = self.scene.aabb(self.obj)
+        t_lo, t_hi = self.scene.aabb(self.target)
+        top = max(t_hi[2], self._clear_height((lo[:2] + hi[:2]) / 2, (t_lo[:2] + t_hi[:2]) / 2, self.obj))
+        return top + self.config.lift_clearance + (grasp[2] - lo[2])
+
+    def _clear_height(self, a: np.ndarray, b: np.ndarray, ignore: int) -> float:
+        """Highest surface (other than body ``ignore``) within 5 cm of the segment a -> b (xy)."""
+        sc = self.scene
+        top = -np.inf
+        for s in np.linspace(0, 1, 12):
+            xy = a + (b - a) * s
+            for off in ((0, 0), (0.05, 0), (-0.05, 0), (0, 0.05), (0, -0.05)):
+                z, root = sc.ray_down(xy + np.array(off), 2.0)
+                if root != ignore:
+                    top = max(top, z)
+        return top
+
+    # ---- acting ---------------------------------------------------------------------------------------
+
+    PHASES = ("travel", "descend", "close", "lift", "transfer", "place", "open", "retreat", "done")
+
+    def _start_attempt(self, ee: np.ndarray) -> None:
+        self.plan = self._plan_grasp()
+        above = self.plan.grasp[2] + self.config.approach_above
+        self.travel_z = max(above, self._clear_height(ee[:2], self.plan.grasp[:2], -1) + self.config.travel_clearance)
+        self.obj_bottom0 = self.scene.aabb(self.obj)[0][2]
+        self.phase = 0
+        self.phase_steps = 0
+
+    def _place_xy(self) -> np.ndarray:
+        t_lo, t_hi = self.scene.aabb(self.target)
+        return (t_lo[:2] + t_hi[:2]) / 2
+
+    def _held_offset(self, ee: np.ndarray) -> np.ndarray:
+        """Where the object's bottom centre is relative to the eef (the object may have shifted in the hand)."""
+        lo, hi = self.scene.aabb(self.obj)
+        return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]) - ee
+
+    def __call__(self, env: Any, obs: dict | None = None) -> np.ndarray:
+        raw = env.raw_obs
+        ee = np.asarray(raw["robot0_eef_pos"], dtype=np.float64)
+        if self._episode != env.episode_id:
+            self._setup(env)
+            self.attempts = 1
+            self._start_attempt(ee)
+        rot = libero().T.quat2mat(raw["robot0_eef_quat"])
+        target_rot = _yaw_rotation(self.plan.yaw)
+        ori_err = _rotation_error(target_rot, rot)
+        cfg = self.config
+        while True:
+            goal, grip, done = self._goal(self.PHASES[self.phase], ee, float(np.linalg.norm(ori_err)))
+            if not done:
+                break
+            if self.PHASES[self.phase] == "lift" and not self._lifted() and self.attempts < cfg.max_attempts:
+                self.attempts += 1
+                self._start_attempt(ee)
+                continue
+            self.phase += 1
+            self.phase_steps = 0
+        self.phase_steps += 1
+        if goal is None:
+            return np.array([0, 0, 0, 0, 0, 0, grip], dtype=np.float64)
+        pos_a = np.clip(cfg.pos_gain * (goal - ee) / POS_SCALE, -cfg.max_pos_action, cfg.max_pos_action)
+        rot_a = np.clip(cfg.rot_gain * ori_err / ROT_SCALE, -1.0, 1.0)
+        return np.array([*pos_a, *rot_a, grip], dtype=np.float64)
+
+    def _lifted(self) -> bool:
+        return self.scene.aabb(self.obj)[0][2] > self.obj_bottom0 + 0.02
+
+    def _goal(self, phase: str, ee: np.ndarray, ori_err: float) -> tuple[np.ndarray | None, float, bool]:
+        """(eef goal or None to hold still, gripper command, whether the phase is finished)."""
+        cfg, p = self.config, self.plan
+        timed_out = self.phase_steps >= cfg.waypoint_timeout
+        oriented = ori_err < cfg.ori_tol
+        if phase == "travel":
+            if ee[2] < self.travel_z - 0.02 and np.linalg.norm(ee[:2] - p.grasp[:2]) > 0.02:
+                return np.array([ee[0], ee[1], self.travel_z]), -1.0, False
+            goal, grip, need_ori = np.array([*p.grasp[:2], self.travel_z]), -1.0, True
+        elif phase == "descend":
+            goal, grip, need_ori = p.grasp, -1.0, True
+        elif phase in ("close", "open"):
+            steps, grip = (cfg.close_steps, 1.0) if phase == "close" else (cfg.open_steps, -1.0)
+            return None, grip, self.phase_steps >= steps
+        elif phase == "lift":
+            goal, grip, need_ori = np.array([*p.grasp[:2], p.lift_z]), 1.0, False
+        elif phase == "transfer":
+            off = self._held_offset(ee)
+            goal, grip, need_ori = np.array([*(self._place_xy() - off[:2]), p.lift_z]), 1.0, False
+        elif phase == "place":
+            off = self._held_offset(ee)
+            t_hi = self.scene.aabb(self.target)[1]
+            bottom = t_hi[2] + (cfg.drop_above if self.into else cfg.place_above)
+            goal, grip, need_ori = np.array([*(self._place_xy() - off[:2]), bottom - off[2]]), 1.0, False
+        elif phase == "retreat":
+            return np.array([ee[0], ee[1], p.lift_z]), -1.0, False
+        else:
+            return None, -1.0, False
+        reached = np.linalg.norm(goal - ee) < cfg.pos_tol and (oriented or not need_ori)
+        return goal, grip, reached or timed_out
+
+
+def expert_actor(suite: str, task: int | str) -> Callable[[Any, dict | None], np.ndarray]:
+    """A scripted expert for one task of LIBERO-Spatial / LIBERO-Object (or their LIBERO-PRO variants).
+
+    Returns ``actor(env, obs) -> action``: ``env`` is the ``LiberoEnv`` from ``make_env("libero", ...)``
+    (rendering may be off), ``obs`` its latest observation (unused: the expert reads privileged state).
+    """
+    if not suite.startswith(("libero_spatial", "libero_object")):
+        raise ValueError(f"scripted experts exist for libero_spatial and libero_object suites, not {suite!r}")
+    from pivla.envs.libero.env import list_tasks
+
+    names = [t.name for t in list_tasks(suite)]
+    if isinstance(task, str) and task not in names:
+        raise ValueError(f"unknown task {task!r} in suite {suite!r}")
+    if isinstance(task, int) and not 0 <= task < len(names):
+        raise ValueError(f"task index {task} out of range: suite {suite!r} has {len(names)} tasks")
+    return PickPlaceExpert()

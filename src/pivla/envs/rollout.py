@@ -1,0 +1,135 @@
+"""Episode runner shared by demonstration collection and policy rollouts: (env, actor, seed) -> Episode.
+
+An *actor* is any callable ``actor(obs) -> action (7,)``; if it has ``reset(env, seed)`` that is called
+after every ``env.reset``, and its ``source`` attribute ("expert", "policy", ...) is recorded. Every
+episode records its actions, observations (before each action), rewards, dones and success, so failed
+rollouts are as usable (for the value head) as successful demonstrations.
+
+Episode seeds depend only on (base seed, episode index), never on the number of worker processes, so
+``--workers 1`` and ``--workers 4`` produce identical datasets.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import pickle
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from pivla.data.format import Episode
+
+log = logging.getLogger(__name__)
+
+EnvFactory = Callable[[], Any]
+Actor = Callable[[dict], np.ndarray]
+
+
+def episode_seed(seed: int, index: int) -> int:
+    """A well-mixed 31-bit seed for episode ``index`` of a run seeded ``seed``."""
+    return int(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, int(index)]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None) -> Episode:
+    """Run one episode until success (terminated), the env's step limit (truncated) or ``max_steps``."""
+    obs, info = env.reset(seed=seed)
+    if hasattr(actor, "reset"):
+        actor.reset(env, seed)
+    task = getattr(env.unwrapped, "task", None)
+    limit = max_steps or getattr(task, "max_steps", None) or 1000
+    frames: dict[str, list[np.ndarray]] = {k: [] for k, v in obs.items() if k != "instruction"}
+    actions, rewards, dones = [], [], []
+    instruction = obs.get("instruction", "")
+    success = bool(info.get("success", False))
+    for _ in range(limit):
+        action = np.asarray(actor(obs), dtype=np.float32)
+        for key in frames:
+            frames[key].append(obs[key])
+        obs, reward, terminated, truncated, info = env.step(action)
+        actions.append(action)
+        rewards.append(reward)
+        dones.append(terminated or truncated)
+        success = bool(info.get("success", False))
+        if terminated or truncated:
+            break
+    if dones:
+        dones[-1] = True
+    unwrapped = env.unwrapped
+    meta = {
+        "seed": int(seed),
+        "steps": len(actions),
+        "return": float(np.sum(rewards)),
+        "suite": getattr(unwrapped, "suite", None),
+        "task": getattr(task, "name", None),
+        "realism": getattr(unwrapped, "realism", None),
+        "perturb": unwrapped.perturb.spec() if hasattr(unwrapped, "perturb") else None,
+        "stage_progress": info.get("stage_progress"),
+    }
+    return Episode(
+        actions=np.array(actions, np.float32).reshape(-1, 7),
+        obs={k: np.stack(v) for k, v in frames.items()},
+        instruction=instruction,
+        rewards=np.array(rewards, np.float32),
+        dones=np.array(dones, np.uint8),
+        success=success,
+        source=getattr(actor, "source", "rollout"),
+        meta=meta,
+    )
+
+
+_WORKER_ENVS: dict[bytes, Any] = {}
+
+
+def _worker(job: tuple[EnvFactory, Actor, int]) -> Episode:
+    """Runs in a worker process; reuses one env per distinct factory (model building costs ~50 ms)."""
+    env_factory, actor, seed = job
+    key = pickle.dumps(env_factory)
+    if key not in _WORKER_ENVS:
+        _WORKER_ENVS[key] = env_factory()
+    return run_episode(_WORKER_ENVS[key], actor, seed)
+
+
+def run_jobs(jobs: Sequence[tuple[EnvFactory, int]], actor: Actor, *, workers: int = 1,
+             desc: str | None = None) -> list[Episode]:
+    """One episode per (env factory, seed) job, in job order. ``workers > 1`` uses spawned processes
+    (factories and actor must then be picklable, e.g. ``functools.partial(make_env, ...)`` and an un-reset
+    expert); each worker builds one env per distinct factory and reuses it."""
+    progress = tqdm(total=len(jobs), desc=desc, unit="ep", disable=desc is None, leave=False)
+    try:
+        if workers <= 1 or len(jobs) <= 1:
+            envs: dict[bytes, Any] = {}
+            episodes = []
+            for factory, seed in jobs:
+                key = pickle.dumps(factory)
+                if key not in envs:
+                    envs[key] = factory()
+                episodes.append(run_episode(envs[key], actor, seed))
+                progress.update()
+            for env in envs.values():
+                env.close()
+            return episodes
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(min(workers, len(jobs))) as pool:
+            episodes = []
+            for ep in pool.imap(_worker, [(factory, actor, seed) for factory, seed in jobs]):
+                episodes.append(ep)
+                progress.update()
+            return episodes
+    finally:
+        progress.close()
+
+
+def run_episodes(env_factory: EnvFactory, actor: Actor, seeds: Sequence[int], *, workers: int = 1,
+                 desc: str | None = None) -> list[Episode]:
+    """One episode of ``env_factory``'s env per seed, in seed order (see :func:`run_jobs`)."""
+    return run_jobs([(env_factory, s) for s in seeds], actor, workers=workers, desc=desc)
+
+
+def collect_episodes(
+    env_factory: EnvFactory, actor: Actor, n: int, seed: int = 0, *, workers: int = 1, desc: str | None = None
+) -> list[Episode]:
+    """``n`` episodes with seeds ``episode_seed(seed, 0..n-1)`` (identical for any ``workers``)."""
+    return run_episodes(env_factory, actor, [episode_seed(seed, i) for i in range(n)], workers=workers, desc=desc)

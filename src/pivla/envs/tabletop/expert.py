@@ -1,0 +1,200 @@
+"""Scripted experts: a waypoint state machine on privileged simulator state that emits the policy's own
+7-D action (so demonstrations are exactly what a policy has to learn).
+
+Every task is a sequence of goals (:mod:`tasks`); each goal expands into phases (approach above, descend,
+close, lift, carry, lower, release, retreat). A phase drives the tool centre to a target that is
+recomputed from the live state every step with a clipped proportional law, and ends when within tolerance
+or after a step budget (so a slipped grasp shows up as a failed episode, never as a hang). The loop is
+closed on the *measured* pose, so the same script works with servo backlash and deadband.
+
+``noise > 0`` makes demonstrations diverse: Gaussian action noise on the motion dimensions plus a
+per-episode draw of lift height, approach height and speed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from pivla.envs.tabletop import arm, tasks
+from pivla.envs.tabletop.env import ROT_SCALE, TRANS_SCALE, TabletopEnv
+
+Target = Callable[[dict], np.ndarray]
+STALL = 0.0015  # m over three steps: a phase whose tool moves less than this has stalled
+
+
+@dataclass(frozen=True)
+class ExpertConfig:
+    noise: float = 0.0  # std of Gaussian noise on action dims 0..5 (in action units)
+    gain: float = 0.9  # proportional gain (fraction of the error corrected per step)
+    lift: float = 0.07  # carry height of the tool centre above its grasp height (m)
+    approach: float = 0.05  # height above the grasp point before descending (m)
+    grip_steps: int = 3  # control steps to close or open the gripper
+
+
+def _wrap(angle: float, period: float) -> float:
+    return float((angle + period / 2) % period - period / 2)
+
+
+class Expert:
+    """Callable actor: ``expert.reset(env, seed)`` once per episode, then ``action = expert(obs)``."""
+
+    source = "expert"
+
+    def __init__(self, config: ExpertConfig | None = None):
+        self.config = config or ExpertConfig()
+        self.env: TabletopEnv | None = None
+        self._plan: Iterator[np.ndarray] | None = None
+        self.phase = ""
+
+    def reset(self, env, seed: int | None = None) -> None:
+        self.env = env.unwrapped
+        if not isinstance(self.env, TabletopEnv):
+            raise TypeError("the scripted expert needs a tabletop env (it reads privileged simulator state)")
+        self.rng = np.random.default_rng(seed)
+        cfg = self.config
+        jitter = self.rng.uniform(-1.0, 1.0, 3) if cfg.noise > 0 else np.zeros(3)
+        self.lift = cfg.lift + 0.015 * jitter[0]
+        self.approach = cfg.approach + 0.01 * jitter[1]
+        self.gain = cfg.gain * (1.0 + 0.1 * jitter[2])
+        self._plan = self._task_plan()
+
+    def __call__(self, obs: dict) -> np.ndarray:
+        if self._plan is None:
+            raise RuntimeError("call expert.reset(env, seed) before asking for actions")
+        action = next(self._plan, None)
+        if action is None:  # plan finished without success: hold still with the gripper open
+            action = np.array([0, 0, 0, 0, 0, 0, -1.0])
+        if self.config.noise > 0:
+            action = action.copy()
+            action[:6] += self.rng.normal(0.0, self.config.noise, 6)
+        return np.clip(action, -1.0, 1.0).astype(np.float32)
+
+    # ------------------------------------------------------------------------------------------ primitives
+    def _state(self) -> dict:
+        return self.env.privileged_state()
+
+    def _action(self, state: dict, target: np.ndarray, yaw: float, grip: float) -> np.ndarray:
+        err = target - state["ee_pos"]
+        trans = np.clip(self.gain * err / TRANS_SCALE, -1.0, 1.0)
+        rot = arm.rotvec_from_mat(arm.euler_to_mat([0.0, 0.0, yaw]) @ state["ee_mat"].T)
+        norm = np.linalg.norm(rot)
+        if norm > ROT_SCALE:
+            rot *= ROT_SCALE / norm
+        rot = arm.mat_to_euler(arm.mat_from_rotvec(self.gain * rot)) / ROT_SCALE
+        return np.concatenate([trans, np.clip(rot, -1.0, 1.0), [grip]])
+
+    def _move(self, phase: str, target: Target, yaw: float, grip: float, tol: float, budget: int = 30,
+              done: Callable[[dict], bool] | None = None) -> Iterator[np.ndarray]:
+        """Drive the tool centre to ``target(state)``; stop within ``tol`` (and ``done``) or after ``budget``."""
+        self.phase = phase
+        trail = []
+        for _ in range(budget):
+            state = self._state()
+            goal = target(state)
+            if np.linalg.norm(goal - state["ee_pos"]) < tol and (done is None or done(state)):
+                return
+            trail.append(state["ee_pos"])
+            if len(trail) > 4 and np.linalg.norm(trail[-1] - trail[-4]) < STALL:
+                return  # blocked (contact, joint limit or servo deadband): waiting would not help
+            yield self._action(state, goal, yaw, grip)
+
+    def _hold(self, phase: str, grip: float, steps: int, yaw: float) -> Iterator[np.ndarray]:
+        self.phase = phase
+        for _ in range(steps):
+            state = self._state()
+            yield self._action(state, state["ee_pos"], yaw, grip)
+
+    def _grasp_yaw(self, name: str, state: dict, dest: np.ndarray | None = None) -> float:
+        """Yaw closing the fingers across one of the object's symmetric axes, chosen nearest to the arm's
+        heading at the object and at the destination ``dest`` (xy) so the wrist stays inside its range."""
+        obj = state["objects"][name]
+        spec = tasks.OBJECTS[name]
+        heading = float(np.arctan2(obj["pos"][1], obj["pos"][0]))
+        dest_heading = heading if dest is None else float(np.arctan2(dest[1], dest[0]))
+        if spec.geom == "sphere":
+            return heading
+        first = heading + _wrap(obj["yaw"] - heading, spec.yaw_symmetry)
+        candidates = first + spec.yaw_symmetry * np.arange(-2, 3)
+        cost = np.abs(candidates - heading) + np.abs(candidates - dest_heading)
+        return float(candidates[int(np.argmin(cost))])
+
+    # ------------------------------------------------------------------------------------------- skills
+    def _pick(self, name: str, dest: np.ndarray | None = None) -> Iterator[np.ndarray]:
+        spec = tasks.OBJECTS[name]
+        yaw = self._grasp_yaw(name, self._state(), dest)
+
+        def above(s: dict) -> np.ndarray:
+            p = s["objects"][name]["pos"]
+            return np.array([p[0], p[1], spec.grasp_z + self.approach])
+
+        def grasp(s: dict) -> np.ndarray:
+            p = s["objects"][name]["pos"]
+            return np.array([p[0], p[1], spec.grasp_z])
+
+        yield from self._move("approach", above, yaw, -1.0, tol=0.012)
+        yield from self._move("descend", grasp, yaw, -1.0, tol=0.006, budget=12)
+        yield from self._hold("close", 1.0, self.config.grip_steps, yaw)
+        lift_z = spec.grasp_z + self.lift
+        start = self._state()["ee_pos"].copy()
+        yield from self._move("lift", lambda s: np.array([start[0], start[1], lift_z]), yaw, 1.0, tol=0.015)
+
+    def _place(self, name: str, xy: Callable[[dict], np.ndarray], rest_z: float) -> Iterator[np.ndarray]:
+        """Carry the held object above ``xy``, lower it until it rests at ``rest_z``, release, retreat."""
+        yaw = float(arm.mat_to_euler(self._state()["ee_mat"])[2])
+        carry_z = self._state()["ee_pos"][2]
+
+        def offset(s: dict) -> np.ndarray:  # tool centre minus object centre (the grasp may have slipped)
+            return s["ee_pos"] - s["objects"][name]["pos"]
+
+        def carry(s: dict) -> np.ndarray:
+            return np.array([*(xy(s) + offset(s)[:2]), carry_z])
+
+        def lower(s: dict) -> np.ndarray:
+            return np.array([*(xy(s) + offset(s)[:2]), rest_z + 0.003 + offset(s)[2]])
+
+        yield from self._move("carry", carry, yaw, 1.0, tol=0.008)
+        yield from self._move("lower", lower, yaw, 1.0, tol=0.004, budget=20,
+                              done=lambda s: s["objects"][name]["pos"][2] < rest_z + 0.006)
+        yield from self._hold("release", -1.0, self.config.grip_steps, yaw)
+        top = self._state()["ee_pos"] + [0.0, 0.0, 0.06]
+        yield from self._move("retreat", lambda s: top, yaw, -1.0, tol=0.01, budget=15)
+
+    def _drawer(self, kind: str) -> Iterator[np.ndarray]:
+        half_open = -0.3  # the back finger must fit between the handle bar and the drawer front
+        start = self._state()["handle_pos"].copy()
+        closed_x = start[0] + self._state()["drawer"]
+
+        def above(s: dict) -> np.ndarray:
+            return s["handle_pos"] + [0.0, 0.0, self.approach]
+
+        yield from self._move("approach", above, 0.0, half_open, tol=0.01)
+        yield from self._move("descend", lambda s: s["handle_pos"].copy(), 0.0, half_open, tol=0.004, budget=20)
+        yield from self._hold("close", 1.0, self.config.grip_steps, 0.0)
+        goal_x = closed_x - 0.075 if kind == "drawer_open" else closed_x + 0.004
+        yield from self._move("pull" if kind == "drawer_open" else "push",
+                              lambda s: np.array([goal_x, start[1], start[2]]), 0.0, 1.0, tol=0.004, budget=40)
+        yield from self._hold("release", half_open, self.config.grip_steps, 0.0)
+        top = self._state()["ee_pos"] + [0.0, 0.0, 0.06]
+        yield from self._move("retreat", lambda s: top, 0.0, half_open, tol=0.01, budget=15)
+
+    def _task_plan(self) -> Iterator[np.ndarray]:
+        for goal in self.env.task.goals:
+            if goal.kind in ("drawer_open", "drawer_close"):
+                yield from self._drawer(goal.kind)
+            elif goal.kind == "move":
+                start = self._state()["initial"][goal.obj][:2]
+                target = tasks.move_target(start, goal.direction)
+                yield from self._pick(goal.obj, target)
+                yield from self._place(goal.obj, lambda s, t=target: t, tasks.OBJECTS[goal.obj].rest_z)
+            else:  # stack
+                base = tasks.OBJECTS[goal.onto]
+                yield from self._pick(goal.obj, self._state()["objects"][goal.onto]["pos"][:2])
+                rest = base.rest_z + base.size[2] + tasks.OBJECTS[goal.obj].size[2]
+                yield from self._place(goal.obj, lambda s: s["objects"][goal.onto]["pos"][:2].copy(), rest)
+
+
+def make_expert(noise: float = 0.0) -> Expert:
+    return Expert(ExpertConfig(noise=noise))

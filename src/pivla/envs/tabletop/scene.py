@@ -1,0 +1,147 @@
+"""MJCF of one task's scene: the arm (``assets/arm.xml``), a table, the task's objects, an optional drawer
+cabinet, and visual-only distractor slots. Shadows and multisampling are off: on a CPU renderer they cost
+~20x the frame time of this primitive scene (docs/twin.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pivla.envs.tabletop.arm import ARM_XML
+from pivla.envs.tabletop.tasks import CABINET_FRONT_X, OBJECTS, TaskDef
+
+TABLE_RGBA = (0.78, 0.66, 0.52, 1.0)
+FLOOR_RGBA = (0.35, 0.37, 0.4, 1.0)
+WALL_RGBA = (0.82, 0.84, 0.86, 1.0)
+AGENTVIEW_POS = np.array([0.42, 0.0, 0.30])
+AGENTVIEW_TARGET = np.array([0.16, 0.0, 0.03])
+# Distractor slots cycle through these primitives (sizes are maxima; the perturbation scales them down).
+DISTRACTOR_SHAPES = (
+    ("cylinder", "0.015 0.025"),
+    ("box", "0.02 0.012 0.012"),
+    ("capsule", "0.01 0.02"),
+    ("sphere", "0.017"),
+    ("ellipsoid", "0.025 0.012 0.01"),
+    ("box", "0.01 0.03 0.008"),
+)
+# Cabinet: outer depth (x), half width (y), height (z); the drawer slides towards the robot (-x).
+CAB_DEPTH, CAB_HALF_W, CAB_H = 0.12, 0.075, 0.065
+HANDLE_STANDOFF, HANDLE_Z = 0.04, 0.04
+
+
+def look_at_xyaxes(pos: np.ndarray, target: np.ndarray) -> str:
+    """MJCF ``xyaxes`` of a camera at ``pos`` looking at ``target`` with world z up."""
+    fwd = (target - pos) / np.linalg.norm(target - pos)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    return " ".join(f"{v:.6f}" for v in (*right, *up))
+
+
+def _fmt(values) -> str:
+    return " ".join(f"{v:g}" for v in values)
+
+
+def _object_xml(name: str) -> str:
+    o = OBJECTS[name]
+    friction = "1 0.02 0.004" if o.condim == 6 else "1 0.01 0.001"  # rolling friction stops balls rolling on
+    return (
+        f'<body name="{name}" pos="0.2 0 {o.rest_z}"><freejoint name="{name}"/>'
+        f'<geom name="{name}" type="{o.geom}" size="{_fmt(o.size)}" rgba="{_fmt(o.rgba)}" mass="{o.mass}" '
+        f'condim="{o.condim}" friction="{friction}" solref="0.005 1"/></body>'
+    )
+
+
+def _cabinet_xml() -> str:
+    x0, w, h, d = CABINET_FRONT_X, CAB_HALF_W, CAB_H, CAB_DEPTH
+    t = 0.006  # wall thickness
+    shell = [
+        ("cab_top", (x0 + d / 2, 0, h - t / 2), (d / 2, w, t / 2)),
+        ("cab_bottom", (x0 + d / 2, 0, t / 2), (d / 2, w, t / 2)),
+        ("cab_left", (x0 + d / 2, w - t / 2, h / 2), (d / 2, t / 2, h / 2)),
+        ("cab_right", (x0 + d / 2, -w + t / 2, h / 2), (d / 2, t / 2, h / 2)),
+        ("cab_back", (x0 + d - t / 2, 0, h / 2), (t / 2, w, h / 2)),
+    ]
+    geoms = "".join(
+        f'<geom name="{n}" type="box" pos="{_fmt(p)}" size="{_fmt(s)}" material="cabinet"/>' for n, p, s in shell
+    )
+    iw, ih = w - t - 0.002, h - 2 * t - 0.004  # drawer inner half width / height
+    drawer = [
+        ("drawer_front", (x0 - t / 2 + 0.002, 0, t + 0.002 + ih / 2), (t / 2, w - 0.002, ih / 2 + 0.002)),
+        ("drawer_floor", (x0 + d / 2, 0, t + 0.004), (d / 2 - t, iw, 0.002)),
+        ("drawer_left", (x0 + d / 2, iw - 0.002, t + 0.02), (d / 2 - t, 0.002, 0.014)),
+        ("drawer_right", (x0 + d / 2, -iw + 0.002, t + 0.02), (d / 2 - t, 0.002, 0.014)),
+        ("drawer_back", (x0 + d - 2 * t, 0, t + 0.02), (0.002, iw, 0.014)),
+    ]
+    hx = x0 - HANDLE_STANDOFF
+    handle = [
+        ("handle", (hx, 0, HANDLE_Z), (0.005, 0.04, 0.005)),
+        ("handle_post_l", ((hx + x0) / 2, 0.035, HANDLE_Z), ((x0 - hx) / 2, 0.004, 0.004)),
+        ("handle_post_r", ((hx + x0) / 2, -0.035, HANDLE_Z), ((x0 - hx) / 2, 0.004, 0.004)),
+    ]
+    dgeoms = "".join(
+        f'<geom name="{n}" type="box" pos="{_fmt(p)}" size="{_fmt(s)}" material="drawer"/>' for n, p, s in drawer
+    )
+    hgeoms = "".join(
+        f'<geom name="{n}" type="box" pos="{_fmt(p)}" size="{_fmt(s)}" material="handle" condim="4" '
+        f'friction="1.2 0.02 0.001"/>' for n, p, s in handle
+    )
+    return (
+        f'<body name="cabinet" pos="0 0 0">{geoms}'
+        f'<body name="drawer"><joint name="drawer" type="slide" axis="-1 0 0" range="0 {0.10}" damping="3" '
+        f'frictionloss="0.3" armature="0.05"/>{dgeoms}{hgeoms}</body></body>'
+    )
+
+
+def _distractor_xml(i: int) -> str:
+    shape, size = DISTRACTOR_SHAPES[i % len(DISTRACTOR_SHAPES)]
+    return (
+        f'<body name="distractor{i}" mocap="true" pos="0 0 -1"><geom name="distractor{i}" type="{shape}" '
+        f'size="{size}" contype="0" conaffinity="0" rgba="1 1 1 1"/></body>'
+    )
+
+
+def scene_xml(task: TaskDef, n_distractors: int = 0) -> str:
+    """The scene for ``task`` with ``n_distractors`` distractor slots (hidden below the floor until used)."""
+    cam_axes = look_at_xyaxes(AGENTVIEW_POS, AGENTVIEW_TARGET)
+    objects = "".join(_object_xml(n) for n in task.objects)
+    cabinet = _cabinet_xml() if task.drawer else ""
+    distractors = "".join(_distractor_xml(i) for i in range(n_distractors))
+    return f"""<mujoco model="pivla_tabletop_{task.name}">
+  <include file="{ARM_XML.name}"/>
+  <visual>
+    <quality shadowsize="0" offsamples="0"/>
+    <headlight ambient="0.35 0.35 0.35" diffuse="0.4 0.4 0.4" specular="0 0 0"/>
+    <map znear="0.01" zfar="5"/>
+  </visual>
+  <asset>
+    <texture name="checker" type="2d" builtin="checker" rgb1="1 1 1" rgb2="0.55 0.55 0.55" width="64" height="64"/>
+    <texture name="grain" type="2d" builtin="gradient" rgb1="1 1 1" rgb2="0.6 0.6 0.6" width="64" height="64"/>
+    <texture name="dots" type="2d" builtin="flat" mark="random" random="0.08" markrgb="0.4 0.4 0.4" rgb1="1 1 1"
+             width="128" height="128"/>
+    <material name="table" rgba="{_fmt(TABLE_RGBA)}" specular="0" shininess="0"/>
+    <material name="table_checker" texture="checker" texrepeat="8 8" rgba="1 1 1 1" specular="0"/>
+    <material name="table_grain" texture="grain" texrepeat="3 1" rgba="1 1 1 1" specular="0"/>
+    <material name="table_dots" texture="dots" texrepeat="2 2" rgba="1 1 1 1" specular="0"/>
+    <material name="floor" rgba="{_fmt(FLOOR_RGBA)}" specular="0"/>
+    <material name="wall" rgba="{_fmt(WALL_RGBA)}" specular="0"/>
+    <material name="cabinet" rgba="0.55 0.4 0.25 1" specular="0"/>
+    <material name="drawer" rgba="0.85 0.75 0.45 1" specular="0"/>
+    <material name="handle" rgba="0.1 0.1 0.1 1" specular="0"/>
+  </asset>
+  <worldbody>
+    <light name="key" pos="0.3 -0.3 1.2" dir="-0.2 0.25 -1" directional="true" diffuse="0.55 0.55 0.55"
+           specular="0 0 0" castshadow="false"/>
+    <geom name="floor" type="plane" pos="0 0 -0.04" size="3 3 0.1" material="floor" contype="0" conaffinity="0"/>
+    <geom name="table" type="box" pos="0.17 0 -0.02" size="0.38 0.5 0.02" material="table" condim="4"
+          friction="1 0.01 0.001"/>
+    <geom name="wall" type="box" pos="-0.45 0 0.4" size="0.01 2 0.6" material="wall" contype="0" conaffinity="0"/>
+    <camera name="agentview" pos="{_fmt(AGENTVIEW_POS)}" xyaxes="{cam_axes}" fovy="55"/>
+    {objects}{cabinet}{distractors}
+  </worldbody>
+  <contact><exclude body1="finger_left" body2="finger_right"/></contact>
+</mujoco>"""
+
+
+def asset_files() -> dict[str, bytes]:
+    """Files the scene XML includes, for ``MjModel.from_xml_string(xml, assets)``."""
+    return {ARM_XML.name: ARM_XML.read_bytes()}

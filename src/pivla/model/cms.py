@@ -1,0 +1,225 @@
+"""The Cognitive-Motor Synergy model: one forward pass gives discrete and continuous action chunks,
+predicted latents of the next observations and values (paper Eqs. 3-7)."""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pivla.model.backbone import build_backbone
+from pivla.model.config import ModelConfig
+from pivla.model.tokenizer import bin_centers
+
+
+@dataclass
+class CMSOutput:
+    logits: torch.Tensor  # (B, K, D, n_bins) discrete head, Eq. 4
+    continuous: torch.Tensor  # (B, K, D) continuous head, Eq. 5 (normalized action space)
+    latents: torch.Tensor  # (B, K, d_z) predicted next-observation latents, Eq. 6
+    values: torch.Tensor  # (B, H) V[k] = expected return after executing k+1 actions, Eq. 7
+    value_now: torch.Tensor  # (B,) value of the current state, the GAE baseline
+    h_cog: torch.Tensor
+    h_mot: torch.Tensor
+
+
+class DiscreteHead(nn.Module):
+    """Eq. 4, f_d(h_mot): each motor token -> D x B logits. Shared across chunk steps, so its cost is
+    K small matmuls rather than one huge flat projection."""
+
+    def __init__(self, d: int, action_dim: int, n_bins: int):
+        super().__init__()
+        self.action_dim, self.n_bins = action_dim, n_bins
+        self.proj = nn.Sequential(nn.Linear(d, d), nn.GELU(), nn.Linear(d, action_dim * n_bins))
+
+    def forward(self, h_mot: torch.Tensor) -> torch.Tensor:
+        return self.proj(h_mot).unflatten(-1, (self.action_dim, self.n_bins))
+
+
+class ContinuousHead(nn.Module):
+    """Eq. 5, f_c(h_mot): each motor token -> D continuous actions (normalized space)."""
+
+    def __init__(self, d: int, action_dim: int):
+        super().__init__()
+        self.proj = nn.Sequential(nn.Linear(d, d), nn.GELU(), nn.Linear(d, action_dim))
+
+    def forward(self, h_mot: torch.Tensor) -> torch.Tensor:
+        return self.proj(h_mot)
+
+
+class ValueHead(nn.Module):
+    """Eq. 7, f_v(h_cog): H+1 values; index 0 is the current state (the GAE baseline), index k the state
+    after executing k actions of the chunk."""
+
+    def __init__(self, d: int, horizon: int):
+        super().__init__()
+        self.proj = nn.Sequential(nn.Linear(d, d), nn.GELU(), nn.Linear(d, horizon + 1))
+
+    def forward(self, h_cog: torch.Tensor) -> torch.Tensor:
+        return self.proj(h_cog.mean(1))
+
+
+class StatePredictor(nn.Module):
+    """Eq. 6 generalised to the chunk, f_s(h_cog, A_c): one latent per chunk step.
+
+    Step k sees the pooled cognitive readout, the k-th action and the cumulative action up to k, plus a
+    step embedding. The actions enter detached: L_SP must shape the representation, not bend the actions
+    towards whatever makes the future easy to predict.
+    """
+
+    def __init__(self, d: int, action_dim: int, chunk: int, latent_dim: int, hidden: int):
+        super().__init__()
+        self.step_emb = nn.Parameter(torch.randn(chunk, d) * 0.02)
+        self.net = nn.Sequential(
+            nn.Linear(d + 2 * action_dim, hidden), nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(),
+            nn.Linear(hidden, latent_dim),
+        )
+
+    def forward(self, h_cog: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        a = actions.detach()
+        ctx = h_cog.mean(1, keepdim=True) + self.step_emb  # (B, K, d)
+        return self.net(torch.cat([ctx, a, a.cumsum(1)], dim=-1))
+
+
+class LatentDecoder(nn.Module):
+    """g(z_hat): predicted latent -> low-resolution RGB image, for looking at what the model expects.
+    Trained on stop-gradient latents, so it never influences the policy."""
+
+    def __init__(self, latent_dim: int, size: int):
+        super().__init__()
+        self.base = max(size // 4, 1)
+        self.fc = nn.Linear(latent_dim, 64 * self.base * self.base)
+        self.up = nn.Sequential(
+            nn.ConvTranspose2d(64, 32, 4, stride=2, padding=1), nn.GELU(),
+            nn.ConvTranspose2d(32, 3, 4, stride=2, padding=1),
+        )
+        self.size = size
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        x = self.fc(z.detach()).unflatten(-1, (64, self.base, self.base))
+        lead = x.shape[:-3]
+        img = torch.sigmoid(self.up(x.flatten(0, -4)))
+        img = F.interpolate(img, size=(self.size, self.size), mode="bilinear", align_corners=False)
+        return img.unflatten(0, lead)
+
+
+class TargetEncoder(nn.Module):
+    """z = Enc(o): the frozen target of L_SP and the observed latent of AURD's U_pred.
+
+    Latents leave in *policy units*: layer-normalised (scale-free, so eta mixes comparable quantities) and
+    divided by sqrt(d_z), so that an L2 distance between two latents is an RMS error per feature.
+    """
+
+    def __init__(self, encoder: nn.Module, kind: str, ema_decay: float):
+        super().__init__()
+        self.encoder = encoder
+        self.kind = kind
+        self.ema_decay = ema_decay
+        self.encoder.requires_grad_(False)
+
+    @torch.no_grad()
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        lead = images.shape[:-4]
+        z = self.encoder.pooled(images.flatten(0, len(lead) - 1) if len(lead) > 1 else images)
+        z = F.layer_norm(z.float(), z.shape[-1:]) / math.sqrt(z.shape[-1])
+        return z.unflatten(0, lead) if len(lead) > 1 else z
+
+    @torch.no_grad()
+    def update(self, online: nn.Module) -> None:
+        """EMA step towards the policy's online vision encoder (no-op for frozen encoders)."""
+        if self.kind != "ema":
+            return
+        for p_t, p_o in zip(self.encoder.parameters(), online.parameters()):
+            p_t.lerp_(p_o.detach().to(p_t.dtype), 1.0 - self.ema_decay)
+
+
+def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder:
+    tc = cfg.target_encoder
+    if tc.name in ("ema", "frozen"):
+        if not hasattr(backbone, "vision"):
+            raise ValueError(f"target encoder {tc.name!r} needs a backbone with a 'vision' encoder; use dinov2")
+        return TargetEncoder(copy.deepcopy(backbone.vision), tc.name, tc.ema_decay)
+    if tc.name == "dinov2":
+        from pivla.model.dinov2 import Dinov2Encoder
+
+        return TargetEncoder(Dinov2Encoder(tc.path, cfg.image_size), "frozen", tc.ema_decay)
+    raise ValueError(f"unknown target encoder {tc.name!r}; choose 'ema', 'frozen' or 'dinov2'")
+
+
+class CMSModel(nn.Module):
+    """Backbone + the four heads of Eqs. 4-7 + the decoder g + the target encoder."""
+
+    def __init__(self, cfg: ModelConfig, vocab_size: int):
+        super().__init__()
+        self.cfg = cfg
+        self.backbone = build_backbone(cfg, vocab_size)
+        d = self.backbone.d_model
+        self.target = build_target_encoder(cfg, self.backbone)
+        with torch.no_grad():
+            probe = torch.zeros(1, len(cfg.cameras), 3, cfg.image_size, cfg.image_size)
+            self.latent_dim = int(self.target(probe).shape[-1])
+        self.discrete_head = DiscreteHead(d, cfg.action_dim, cfg.n_bins)
+        self.continuous_head = ContinuousHead(d, cfg.action_dim)
+        self.value_head = ValueHead(d, cfg.horizon)
+        self.state_predictor = StatePredictor(d, cfg.action_dim, cfg.chunk, self.latent_dim, cfg.state_hidden)
+        self.decoder = LatentDecoder(self.latent_dim, cfg.decoder_size)
+        # per-dimension log std of the actor's Gaussian around the continuous head (L_RL)
+        self.log_sigma = nn.Parameter(torch.full((cfg.action_dim,), math.log(0.1)))
+        self.register_buffer("bin_centers", torch.from_numpy(bin_centers(cfg.n_bins)), persistent=False)
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> CMSOutput:
+        h_cog, h_mot = self.backbone(batch)
+        continuous = self.continuous_head(h_mot)
+        v = self.value_head(h_cog)
+        return CMSOutput(
+            logits=self.discrete_head(h_mot),
+            continuous=continuous,
+            latents=self.state_predictor(h_cog, continuous),
+            values=v[:, 1:],
+            value_now=v[:, 0],
+            h_cog=h_cog,
+            h_mot=h_mot,
+        )
+
+    def external_state_keys(self) -> set[str]:
+        """State-dict keys of frozen pretrained weights that are rebuilt from a local checkpoint directory
+        (``backbone.path``, the DINOv2 path): run checkpoints leave them out, so a 7B run stores only
+        adapters and heads. Parts declare them with their own ``external_state_keys()``."""
+        keys: set[str] = set()
+        for prefix, module in (("backbone.", self.backbone), ("target.encoder.", self.target.encoder)):
+            declare = getattr(module, "external_state_keys", None)
+            if declare is not None:
+                keys |= {prefix + k for k in declare()}
+        return keys
+
+    def state_dict_for_checkpoint(self) -> dict[str, torch.Tensor]:
+        """The state dict minus ``external_state_keys()``: what model.safetensors holds."""
+        external = self.external_state_keys()
+        return {k: v for k, v in self.state_dict().items() if k not in external}
+
+    def load_checkpoint_state(self, state: dict[str, torch.Tensor], source: str = "checkpoint") -> None:
+        """Inverse of ``state_dict_for_checkpoint``: every other key must match exactly."""
+        missing, unexpected = self.load_state_dict(state, strict=False)
+        missing = [k for k in missing if k not in self.external_state_keys()]
+        if missing or unexpected:
+            raise ValueError(f"{source}: does not match the model built from config.json "
+                             f"(missing {missing[:5]}, unexpected {unexpected[:5]})")
+
+    def update_target(self) -> None:
+        if hasattr(self.backbone, "vision"):
+            self.target.update(self.backbone.vision)
+
+    def parameter_counts(self) -> dict[str, int]:
+        parts = {
+            "backbone": self.backbone, "discrete_head": self.discrete_head, "continuous_head": self.continuous_head,
+            "value_head": self.value_head, "state_predictor": self.state_predictor, "decoder": self.decoder,
+            "target_encoder": self.target,
+        }
+        counts = {k: sum(p.numel() for p in m.parameters()) for k, m in parts.items()}
+        counts["trainable"] = sum(p.numel() for p in self.parameters() if p.requires_grad)
+        counts["total"] = sum(p.numel() for p in self.parameters())
+        return counts

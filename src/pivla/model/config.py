@@ -1,0 +1,56 @@
+"""Configuration of the CMS model (paper Eqs. 3-7). One dataclass per component."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class BackboneConfig:
+    """Which backbone produces h_cog and h_mot. ``small``: CPU-friendly, trained from scratch;
+    ``hf``: a local Hugging Face vision-language model with LoRA (see pivla.model.hf)."""
+
+    name: str = "small"
+    d_model: int = 128
+    n_layers: int = 3
+    n_heads: int = 4
+    ff_mult: int = 2
+    n_cog_tokens: int = 4
+    vision_channels: tuple[int, ...] = (32, 64, 128, 128)
+    dropout: float = 0.0
+    # hf backbone
+    path: str = ""
+    lora_rank: int = 32
+    lora_alpha: int = 16
+    lora_dropout: float = 0.0
+    lora_target_modules: tuple[str, ...] = ("q_proj", "k_proj", "v_proj", "o_proj")
+    gradient_checkpointing: bool = False
+    dtype: str = "auto"  # base weights: auto = bf16 on a bf16-capable GPU, else float32
+
+
+@dataclass
+class TargetEncoderConfig:
+    """Frozen target encoder for L_SP and AURD's U_pred. ``ema``: exponential moving average of the
+    policy's own vision encoder; ``frozen``: a frozen copy of it at initialisation; ``dinov2``: a local
+    DINOv2 checkpoint (``path``)."""
+
+    name: str = "ema"
+    ema_decay: float = 0.995
+    path: str = ""
+
+
+@dataclass
+class ModelConfig:
+    chunk: int = 8  # K, actions per chunk
+    horizon: int = 5  # H_nominal, value entries and AURD's nominal horizon
+    n_bins: int = 256  # B, discrete bins per action dimension
+    action_dim: int = 7  # D
+    cameras: tuple[str, ...] = ("agentview_rgb", "eye_in_hand_rgb")
+    image_size: int = 96
+    proprio_keys: tuple[str, ...] = ("ee_pos", "ee_ori", "gripper_states")
+    proprio_dim: int = 8
+    max_text_len: int = 16
+    state_hidden: int = 256
+    decoder_size: int = 24  # side of the inspection image decoded from predicted latents by g
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    target_encoder: TargetEncoderConfig = field(default_factory=TargetEncoderConfig)

@@ -1,0 +1,139 @@
+"""A trained CMS policy behind the smallest interface: ``infer(obs) -> dict``.
+
+``obs`` holds one time step under the dataset's observation key names plus ``instruction``. Inputs are
+normalised and outputs un-normalised here, outside the network, with the statistics saved in the run.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pivla import config as cfgmod
+from pivla.data.dataset import proprio_vector, resize_images
+from pivla.data.normalize import NormStats
+from pivla.data.text import WordTokenizer, load_text_tokenizer
+from pivla.data.transforms import images_to_tensor
+from pivla.model.cms import CMSModel
+from pivla.training import checkpoint as ck
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Calibration:
+    """AURD thresholds calibrated on validation data (never on test episodes)."""
+
+    tau_low: float
+    tau_high: float
+    v_thresh: float
+    eta: float = 0.7
+    source: str = ""
+
+
+def select_device(device: str = "auto") -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+class Policy:
+    def __init__(self, model: CMSModel, stats: NormStats, text: WordTokenizer, run_dir: Path | None = None,
+                 calibration: Calibration | None = None, device: torch.device | None = None):
+        self.model = model.eval()
+        self.cfg = model.cfg
+        self.stats = stats
+        self.text = text
+        self.run_dir = run_dir
+        self.calibration = calibration
+        self.device = device or next(model.parameters()).device
+        self.bin_centers = model.bin_centers.cpu().numpy()
+        self.chunk, self.horizon = self.cfg.chunk, self.cfg.horizon
+
+    # -- transforms ------------------------------------------------------------------------------------
+    def _check_obs(self, obs: dict) -> None:
+        for key in (*self.cfg.cameras, *self.cfg.proprio_keys, "instruction"):
+            if key not in obs:
+                raise KeyError(f"observation is missing {key!r} (policy needs {list(self.cfg.cameras)} + "
+                               f"{list(self.cfg.proprio_keys)} + 'instruction')")
+        for key in self.cfg.proprio_keys:
+            if not np.all(np.isfinite(np.asarray(obs[key], dtype=np.float64))):
+                raise ValueError(f"observation {key!r} contains NaN or inf")
+
+    def _images(self, obs_list: list[dict]) -> np.ndarray:
+        out = []
+        for obs in obs_list:
+            cams = []
+            for c in self.cfg.cameras:
+                im = np.asarray(obs[c])
+                if im.ndim != 3 or im.shape[-1] != 3 or im.dtype != np.uint8:
+                    raise ValueError(f"observation {c!r} must be an HxWx3 uint8 image, got {im.shape} {im.dtype}")
+                cams.append(resize_images(im, self.cfg.image_size))
+            out.append(np.stack(cams))
+        return np.stack(out)
+
+    def model_inputs(self, obs_list: list[dict]) -> dict[str, torch.Tensor]:
+        for obs in obs_list:
+            self._check_obs(obs)
+        ids, masks = zip(*(self.text.encode(str(o["instruction"])) for o in obs_list))
+        proprio = np.stack([self.stats.proprio.normalize(proprio_vector(o, self.cfg.proprio_keys)) for o in obs_list])
+        return {
+            "images": images_to_tensor(self._images(obs_list), self.device),
+            "text_ids": torch.from_numpy(np.stack(ids)).to(self.device),
+            "text_mask": torch.from_numpy(np.stack(masks)).to(self.device),
+            "proprio": torch.from_numpy(proprio.astype(np.float32)).to(self.device),
+        }
+
+    # -- inference -------------------------------------------------------------------------------------
+    @torch.inference_mode()
+    def infer_batch(self, obs_list: list[dict]) -> dict[str, np.ndarray]:
+        """Batched ``infer``: every output gains a leading batch dimension."""
+        out = self.model(self.model_inputs(obs_list))
+        probs = torch.softmax(out.logits.float(), dim=-1)
+        cont = out.continuous.float().clamp(-1, 1).cpu().numpy()
+        return {
+            "actions": self.stats.action.unnormalize(cont),
+            "actions_normalized": cont,
+            "discrete_probs": probs.cpu().numpy(),
+            "latents": out.latents.float().cpu().numpy(),
+            "values": out.values.float().cpu().numpy(),
+            "value_now": out.value_now.float().cpu().numpy(),
+        }
+
+    def infer(self, obs: dict) -> dict[str, np.ndarray]:
+        """One observation -> actions (K,7) un-normalised, actions_normalized (K,7), discrete_probs
+        (K,7,256), latents (K,d_z) predicted next-observation latents, values (H,), value_now ()."""
+        return {k: v[0] for k, v in self.infer_batch([obs]).items()}
+
+    @torch.inference_mode()
+    def encode(self, obs: dict) -> np.ndarray:
+        """Enc(o): the target encoder's latent of an observation, in the units of ``latents``."""
+        images = images_to_tensor(self._images([obs]), self.device)
+        return self.model.target(images)[0].float().cpu().numpy()
+
+    def to_actions(self, normalized: np.ndarray) -> np.ndarray:
+        return self.stats.action.unnormalize(normalized)
+
+
+def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0) -> Policy:
+    """Load a run directory written by ``pivla train`` (safetensors + JSON only)."""
+    from pivla.training.trainer import TrainConfig
+
+    run_dir = Path(run_dir)
+    if threads > 0:
+        torch.set_num_threads(threads)
+    cfg = cfgmod.from_dict(TrainConfig, ck.read_json(run_dir / ck.CONFIG_FILE))
+    stats = NormStats.from_dict(ck.read_json(run_dir / ck.STATS_FILE))
+    text = load_text_tokenizer(ck.read_json(run_dir / ck.TOKENIZER_FILE))
+    dev = select_device(device)
+    model = CMSModel(cfg.model, len(text.vocab))
+    state = ck.load_tensors(run_dir / ck.MODEL_FILE)
+    model.load_checkpoint_state(state, str(run_dir / ck.MODEL_FILE))
+    calib = None
+    if (run_dir / ck.CALIBRATION_FILE).exists():
+        calib = Calibration(**ck.read_json(run_dir / ck.CALIBRATION_FILE))
+    return Policy(model.to(dev), stats, text, run_dir, calib, dev)

@@ -1,0 +1,130 @@
+"""Run directories and checkpoints: safetensors and JSON only (no pickle), every write atomic.
+
+A run directory holds what a user deploys — ``model.safetensors``, ``config.json``, ``norm_stats.json``,
+``tokenizer.json`` (and ``calibration.json`` once AURD thresholds are calibrated) — plus ``status.json``
+and ``checkpoints/step_<N>/`` with the optimizer, scheduler and RNG state that ``--resume`` needs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+MODEL_FILE = "model.safetensors"
+CONFIG_FILE = "config.json"
+STATS_FILE = "norm_stats.json"
+TOKENIZER_FILE = "tokenizer.json"
+STATUS_FILE = "status.json"
+CALIBRATION_FILE = "calibration.json"
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_json(path: Path, obj: Any) -> None:
+    atomic_write_bytes(Path(path), (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
+
+
+def read_json(path: Path) -> Any:
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: missing (is this a pivla run directory?)") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: corrupt JSON ({e})") from e
+
+
+def save_tensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None) -> None:
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, tmp, metadata=metadata)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_tensors(path: Path) -> dict[str, torch.Tensor]:
+    try:
+        return load_file(str(path))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: missing") from None
+    except Exception as e:  # safetensors raises its own error types for truncated/corrupt files
+        raise ValueError(f"{path}: corrupt or truncated safetensors file ({e})") from e
+
+
+def optimizer_to_tensors(state: dict) -> tuple[dict[str, torch.Tensor], dict]:
+    """Split an optimizer state_dict into tensors (for safetensors) and a JSON-able remainder."""
+    tensors, scalars = {}, {}
+    for idx, s in state["state"].items():
+        for k, v in s.items():
+            if isinstance(v, torch.Tensor):
+                tensors[f"{idx}.{k}"] = v
+            else:
+                scalars[f"{idx}.{k}"] = v
+    return tensors, {"param_groups": state["param_groups"], "scalars": scalars}
+
+
+def optimizer_from_tensors(tensors: dict[str, torch.Tensor], meta: dict) -> dict:
+    state: dict[int, dict] = {}
+    for key, v in list(tensors.items()) + list(meta["scalars"].items()):
+        idx, name = key.split(".", 1)
+        state.setdefault(int(idx), {})[name] = v
+    return {"state": state, "param_groups": meta["param_groups"]}
+
+
+def save_checkpoint(run_dir: Path, step: int, model_state: dict[str, torch.Tensor], optimizer_state: dict,
+                    train_state: dict, keep: int = 2) -> Path:
+    """Write ``checkpoints/step_<N>`` completely under a temporary name, then rename it into place."""
+    ckpt_root = Path(run_dir) / "checkpoints"
+    ckpt_root.mkdir(parents=True, exist_ok=True)
+    final = ckpt_root / f"step_{step:08d}"
+    tmp = Path(tempfile.mkdtemp(dir=ckpt_root, prefix=".tmp_"))
+    try:
+        save_tensors(tmp / MODEL_FILE, model_state)
+        opt_tensors, opt_meta = optimizer_to_tensors(optimizer_state)
+        save_tensors(tmp / "optimizer.safetensors", opt_tensors)
+        atomic_write_json(tmp / "optimizer.json", opt_meta)
+        atomic_write_json(tmp / "train_state.json", {**train_state, "step": step})
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    for old in sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())[:-keep]:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    ckpts = sorted(p for p in (Path(run_dir) / "checkpoints").glob("step_*") if (p / "train_state.json").exists())
+    return ckpts[-1] if ckpts else None
+
+
+def load_checkpoint(ckpt: Path) -> tuple[dict[str, torch.Tensor], dict, dict]:
+    model_state = load_tensors(ckpt / MODEL_FILE)
+    opt_state = optimizer_from_tensors(load_tensors(ckpt / "optimizer.safetensors"), read_json(ckpt / "optimizer.json"))
+    return model_state, opt_state, read_json(ckpt / "train_state.json")

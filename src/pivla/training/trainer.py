@@ -1,0 +1,296 @@
+"""Training loop for the CMS model with the unified objective.
+
+One code path for CPU, one GPU and several GPUs or nodes: Accelerate wraps the model (DDP when launched
+with ``torchrun`` or ``accelerate launch``) and handles mixed precision. Batches are a pure function of
+(seed, step, rank), so ``--resume`` replays exactly what an uninterrupted run would have done.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pivla import config as cfgmod
+from pivla.data.dataset import (
+    ChunkDataset, augment_shift, collate, epoch_batch_indices, fit_norm_stats, prepare_episode, split_episodes,
+)
+from pivla.data.format import DatasetError, read_dataset
+from pivla.data.normalize import NormStats
+from pivla.data.text import build_text_tokenizer, load_text_tokenizer
+from pivla.data.transforms import batch_to_tensors
+from pivla.model.cms import CMSModel
+from pivla.model.config import ModelConfig
+from pivla.training import checkpoint as ck
+from pivla.training.losses import LossConfig, unified_loss
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainConfig:
+    data: str = ""
+    extra_data: tuple[str, ...] = ()  # more dataset dirs, e.g. recorded policy rollouts for the RL terms
+    out: str = "runs/default"
+    steps: int = 3000
+    batch_size: int = 64
+    grad_accum: int = 1
+    lr: float = 3e-4
+    weight_decay: float = 0.01
+    warmup: int = 200
+    min_lr_ratio: float = 0.05
+    grad_clip: float = 1.0
+    seed: int = 0
+    val_fraction: float = 0.1
+    augment_pad: int = 4
+    log_every: int = 25
+    eval_every: int = 500
+    ckpt_every: int = 500
+    keep_checkpoints: int = 2
+    value_refresh_every: int = 500
+    mixed_precision: str = "auto"  # auto: bf16 on a GPU that supports it, else no
+    device: str = "auto"  # auto | cpu | cuda
+    threads: int = 0  # torch intra-op threads on CPU; 0 = all cores
+    progress: bool = True
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+
+
+def lr_lambda(step: int, cfg: TrainConfig) -> float:
+    """Linear warm-up, then cosine decay to ``min_lr_ratio`` of the peak."""
+    if step < cfg.warmup:
+        return (step + 1) / max(cfg.warmup, 1)
+    progress = min(1.0, (step - cfg.warmup) / max(cfg.steps - cfg.warmup, 1))
+    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def _accelerator(cfg: TrainConfig):
+    from accelerate import Accelerator
+
+    use_cpu = cfg.device == "cpu" or (cfg.device == "auto" and not torch.cuda.is_available())
+    mp = cfg.mixed_precision
+    if mp == "auto":
+        mp = "bf16" if (not use_cpu and torch.cuda.is_bf16_supported()) else "no"
+    return Accelerator(cpu=use_cpu, mixed_precision=mp)
+
+
+def load_episodes(cfg: TrainConfig):
+    if not cfg.data:
+        raise DatasetError("no dataset given (--data DIR)")
+    episodes = read_dataset(cfg.data)
+    for extra in cfg.extra_data:
+        episodes += read_dataset(extra)
+    return episodes
+
+
+class Trainer:
+    """Holds the state of one run; ``run()`` trains to ``cfg.steps`` and returns the run directory."""
+
+    def __init__(self, cfg: TrainConfig, resume: bool = False):
+        self.cfg = cfg
+        self.run_dir = Path(cfg.out)
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)
+        self.acc = _accelerator(cfg)
+        self.device = self.acc.device
+        torch.manual_seed(cfg.seed)
+        episodes = load_episodes(cfg)
+        train_idx, val_idx = split_episodes(episodes, cfg.val_fraction, cfg.seed)
+        train_eps = [episodes[i] for i in train_idx]
+        if resume and (self.run_dir / ck.STATS_FILE).exists():
+            self.stats = NormStats.from_dict(ck.read_json(self.run_dir / ck.STATS_FILE))
+            self.text = load_text_tokenizer(ck.read_json(self.run_dir / ck.TOKENIZER_FILE))
+        else:
+            self.stats = fit_norm_stats(train_eps, cfg.model)
+            self.text = build_text_tokenizer(cfg.model.backbone.name, [ep.instruction for ep in train_eps],
+                                             cfg.model.max_text_len, cfg.model.backbone.path)
+        prep = lambda eps: [prepare_episode(ep, cfg.model, self.stats, self.text) for ep in eps]  # noqa: E731
+        self.train_set = ChunkDataset(prep(train_eps), cfg.model, cfg.loss.sp_steps)
+        self.val_set = ChunkDataset(prep([episodes[i] for i in val_idx]), cfg.model, cfg.loss.sp_steps) if val_idx else None
+        self.split = {"train_episodes": [int(i) for i in train_idx], "val_episodes": [int(i) for i in val_idx]}
+        self.model = CMSModel(cfg.model, len(self.text.vocab)).to(self.device)
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: lr_lambda(s, cfg))
+        self.step = 0
+        self.history: list[dict] = []
+        self.started = time.time()
+        if resume:
+            self._resume()
+        self.ddp_model, self.optimizer = self.acc.prepare(self.model, self.optimizer)
+        self.writer = None
+
+    # -- state ---------------------------------------------------------------------------------------
+    def _resume(self) -> None:
+        ckpt = ck.latest_checkpoint(self.run_dir)
+        if ckpt is None:
+            log.warning("--resume: no checkpoint in %s, starting from scratch", self.run_dir)
+            return
+        model_state, opt_state, train_state = ck.load_checkpoint(ckpt)
+        self.model.load_checkpoint_state(model_state, str(ckpt))
+        self.optimizer.load_state_dict(opt_state)
+        self.scheduler.load_state_dict(train_state["scheduler"])
+        self.step = int(train_state["step"])
+        self.history = train_state.get("history", [])
+        torch.set_rng_state(torch.tensor(train_state["torch_rng"], dtype=torch.uint8))
+        if "values" in train_state:
+            self._set_values([np.asarray(v, np.float32) for v in train_state["values"]])
+        log.info("resumed from %s at step %d", ckpt, self.step)
+
+    def _save(self, final: bool = False) -> None:
+        if not self.acc.is_main_process:
+            return
+        state = self.model.state_dict_for_checkpoint()
+        train_state = {
+            "scheduler": self.scheduler.state_dict(),
+            "torch_rng": torch.get_rng_state().tolist(),
+            "history": self.history[-200:],
+            "values": [v.tolist() for v in self._values] if getattr(self, "_values", None) else [],
+        }
+        if not train_state["values"]:
+            train_state.pop("values")
+        ck.save_checkpoint(self.run_dir, self.step, state, self.optimizer.state_dict(), train_state, self.cfg.keep_checkpoints)
+        self.write_run_files(state)
+        self._write_status(done=final)
+
+    def write_run_files(self, state: dict[str, torch.Tensor]) -> None:
+        """The deployable part of the run directory (what ``load_policy`` reads)."""
+        ck.save_tensors(self.run_dir / ck.MODEL_FILE, state, metadata={"format": "pt", "step": str(self.step)})
+        ck.atomic_write_json(self.run_dir / ck.CONFIG_FILE, cfgmod.to_dict(self.cfg))
+        ck.atomic_write_json(self.run_dir / ck.STATS_FILE, self.stats.to_dict())
+        ck.atomic_write_json(self.run_dir / ck.TOKENIZER_FILE, self.text.to_dict())
+        ck.atomic_write_json(self.run_dir / "split.json", self.split)
+
+    def _write_status(self, done: bool) -> None:
+        ck.atomic_write_json(self.run_dir / ck.STATUS_FILE, {
+            "step": self.step, "steps": self.cfg.steps, "done": done,
+            "elapsed_s": round(time.time() - self.started, 1),
+            "last": self.history[-1] if self.history else {},
+            "train_samples": len(self.train_set), "val_samples": len(self.val_set) if self.val_set else 0,
+        })
+
+    # -- batches ---------------------------------------------------------------------------------------
+    def _batch(self, dataset: ChunkDataset, step: int, rank: int, world: int, augment: bool,
+               seed_offset: int = 0) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        idx = epoch_batch_indices(len(dataset), cfg.batch_size, step, cfg.seed + seed_offset, rank, world)
+        rng = np.random.default_rng([cfg.seed + seed_offset, step, rank])
+        batch = collate([dataset.sample(int(i), rng) for i in idx])
+        if augment and cfg.augment_pad > 0:
+            batch["images"] = augment_shift(batch["images"], rng, cfg.augment_pad)
+        return batch_to_tensors(batch, self.device)
+
+    # -- value refresh for the RL term -------------------------------------------------------------------
+    @torch.no_grad()
+    def _state_values(self, dataset: ChunkDataset, batch: int = 256) -> list[np.ndarray]:
+        self.model.eval()
+        values = []
+        for e, ep in enumerate(dataset.episodes):
+            out = []
+            for s in range(0, len(ep.actions), batch):
+                ts = range(s, min(s + batch, len(ep.actions)))
+                b = batch_to_tensors(collate([dataset.observation(e, t) for t in ts]), self.device)
+                with self.acc.autocast():
+                    out.append(self.model(b).value_now.float().cpu().numpy())
+            values.append(np.concatenate(out))
+        self.model.train()
+        return values
+
+    def _set_values(self, values: list[np.ndarray]) -> None:
+        self._values = values
+        self.train_set.set_values(values, self.cfg.loss.gamma, self.cfg.loss.gae_lambda)
+
+    # -- loop ----------------------------------------------------------------------------------------------
+    def train_step(self) -> dict[str, float]:
+        cfg, acc = self.cfg, self.acc
+        rank, world = acc.process_index, acc.num_processes
+        logs_sum: dict[str, float] = {}
+        for micro in range(cfg.grad_accum):
+            batch = self._batch(self.train_set, self.step * cfg.grad_accum + micro, rank, world, augment=True)
+            sync = micro == cfg.grad_accum - 1
+            ctx = acc.no_sync(self.ddp_model) if not sync else contextlib.nullcontext()
+            with ctx, acc.autocast():
+                out = self.ddp_model(batch)
+                loss, logs = unified_loss(self.model, out, batch, cfg.loss)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"non-finite loss at step {self.step}: { {k: float(v) for k, v in logs.items()} }")
+                acc.backward(loss / cfg.grad_accum)
+            for k, v in logs.items():
+                logs_sum[k] = logs_sum.get(k, 0.0) + float(v) / cfg.grad_accum
+        if cfg.grad_clip > 0:
+            logs_sum["grad_norm"] = float(acc.clip_grad_norm_(self.model.parameters(), cfg.grad_clip))
+        self.optimizer.step()
+        self.scheduler.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.model.update_target()
+        self.step += 1
+        logs_sum["lr"] = self.scheduler.get_last_lr()[0]
+        return logs_sum
+
+    @torch.no_grad()
+    def validate(self, n_batches: int = 4) -> dict[str, float]:
+        if self.val_set is None:
+            return {}
+        self.model.eval()
+        sums: dict[str, float] = {}
+        for i in range(n_batches):
+            batch = self._batch(self.val_set, i, 0, 1, augment=False, seed_offset=10_000)
+            with self.acc.autocast():
+                _, logs = unified_loss(self.model, self.model(batch), batch, self.cfg.loss)
+            for k, v in logs.items():
+                sums[k] = sums.get(k, 0.0) + float(v) / n_batches
+        self.model.train()
+        return sums
+
+    def run(self) -> Path:
+        from tqdm import tqdm
+
+        cfg, acc = self.cfg, self.acc
+        if acc.is_main_process:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            self.writer = SummaryWriter(str(self.run_dir / "tb"))
+        self.model.train()
+        bar = tqdm(total=cfg.steps, initial=self.step, desc="train", disable=not (cfg.progress and acc.is_main_process),
+                   mininterval=2.0, dynamic_ncols=True)
+        t0, s0 = time.time(), self.step
+        while self.step < cfg.steps:
+            if cfg.loss.use_rl and cfg.loss.alpha > 0 and self.step % cfg.value_refresh_every == 0:
+                self._set_values(self._state_values(self.train_set))
+            logs = self.train_step()
+            bar.update(1)
+            if self.step % cfg.log_every == 0 or self.step == cfg.steps:
+                rate = (self.step - s0) * cfg.batch_size * cfg.grad_accum * acc.num_processes / max(time.time() - t0, 1e-9)
+                logs["samples_per_s"] = rate
+                self.history.append({"step": self.step, **{k: round(v, 5) for k, v in logs.items()}})
+                bar.set_postfix(loss=f"{logs['total']:.3f}", il=f"{logs['il']:.3f}")
+                if self.writer:
+                    for k, v in logs.items():
+                        self.writer.add_scalar(f"train/{k}", v, self.step)
+            if self.step % cfg.eval_every == 0 or self.step == cfg.steps:
+                val = self.validate()
+                if val and self.writer:
+                    for k, v in val.items():
+                        self.writer.add_scalar(f"val/{k}", v, self.step)
+                    self.history.append({"step": self.step, **{f"val_{k}": round(v, 5) for k, v in val.items()}})
+            if self.step % cfg.ckpt_every == 0 or self.step == cfg.steps:
+                self._save(final=self.step == cfg.steps)
+        bar.close()
+        if self.writer:
+            self.writer.close()
+        acc.wait_for_everyone()
+        return self.run_dir
+
+
+def train(cfg: TrainConfig, resume: bool = False) -> Path:
+    """Train (or resume) a run; returns its directory."""
+    os.makedirs(cfg.out, exist_ok=True)
+    return Trainer(cfg, resume=resume).run()

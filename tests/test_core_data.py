@@ -1,0 +1,130 @@
+import h5py
+import numpy as np
+import pytest
+
+from pivla.data.dataset import ChunkDataset, gae, prepare_episode, split_episodes
+from pivla.data.format import DatasetError, Episode, read_dataset, read_episodes, write_episodes
+from pivla.data.normalize import ActionStats
+from pivla.data.synthetic import synthetic_episode
+from pivla.data.text import WordTokenizer
+from pivla.model.config import ModelConfig
+
+
+def _episode(T=12, seed=0, **kw):
+    return synthetic_episode(np.random.default_rng(seed), "left", T=T, size=16, **kw)
+
+
+def test_write_read_round_trip(tmp_path):
+    eps = [_episode(seed=i) for i in range(3)] + [_episode(seed=9, success=False)]
+    path = write_episodes(tmp_path / "a.hdf5", eps)
+    back = read_episodes(path)
+    assert len(back) == 4
+    for a, b in zip(eps, back):
+        np.testing.assert_array_equal(a.actions, b.actions)
+        np.testing.assert_array_equal(a.obs["agentview_rgb"], b.obs["agentview_rgb"])
+        assert a.instruction == b.instruction and a.success == b.success
+    assert [e.success for e in back] == [True, True, True, False]
+    with h5py.File(path) as f:  # official layout
+        assert "language_instruction" in f["data"].attrs["problem_info"]
+        assert f["data/demo_0/obs/agentview_rgb"].dtype == np.uint8
+
+
+def test_official_layout_without_extensions_loads(tmp_path):
+    """A file as LIBERO writes it: no per-demo instruction/success attributes."""
+    ep = _episode()
+    with h5py.File(tmp_path / "libero.hdf5", "w") as f:
+        g = f.create_group("data")
+        g.attrs["problem_info"] = '{"language_instruction": "pick up the bowl"}'
+        d = g.create_group("demo_0")
+        for k in ("actions", "rewards", "dones"):
+            d.create_dataset(k, data=getattr(ep, k))
+        for k, v in ep.obs.items():
+            d.create_dataset(f"obs/{k}", data=v)
+    (back,) = read_dataset(tmp_path)
+    assert back.instruction == "pick up the bowl" and back.success
+
+
+def test_missing_key_is_named(tmp_path):
+    path = write_episodes(tmp_path / "a.hdf5", [_episode()])
+    with h5py.File(path, "a") as f:
+        del f["data/demo_0/obs/agentview_rgb"]
+    with pytest.raises(DatasetError, match=r"a.hdf5.*data/demo_0/obs/agentview_rgb"):
+        read_episodes(path)
+
+
+def test_truncated_file_is_named(tmp_path):
+    path = write_episodes(tmp_path / "a.hdf5", [_episode(T=40)])
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(DatasetError, match="a.hdf5"):
+        read_episodes(path)
+
+
+def test_wrong_schema_is_named(tmp_path):
+    with h5py.File(tmp_path / "w.hdf5", "w") as f:
+        f.create_dataset("foo", data=np.zeros(3))
+    with pytest.raises(DatasetError, match=r"w.hdf5: missing key 'data'"):
+        read_episodes(tmp_path / "w.hdf5")
+    with pytest.raises(DatasetError, match="shape"):
+        Episode(actions=np.zeros((5, 6)), obs={}, instruction="x")
+
+
+def test_failed_write_leaves_previous_file(tmp_path):
+    path = write_episodes(tmp_path / "a.hdf5", [_episode()])
+    before = path.read_bytes()
+    bad = _episode()
+    bad.obs["agentview_rgb"] = object()  # not an array: h5py fails mid-write
+    with pytest.raises(Exception):
+        write_episodes(path, [_episode(), bad])
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["a.hdf5"]
+
+
+def test_split_is_episode_level_and_stratified():
+    eps = [synthetic_episode(np.random.default_rng(i), g, T=5, size=8) for g in ("left", "right") for i in range(5)]
+    train, val = split_episodes(eps, 0.2, seed=0)
+    assert set(train).isdisjoint(val) and sorted(train + val) == list(range(10))
+    assert {eps[i].instruction for i in val} == {"move the square left", "move the square right"}
+
+
+def test_chunk_targets_padding_mask_and_next_obs():
+    cfg = ModelConfig(image_size=16, chunk=8, horizon=5)
+    ep = _episode(T=10)
+    stats = __import__("pivla.data.dataset", fromlist=["fit_norm_stats"]).fit_norm_stats([ep], cfg)
+    ds = ChunkDataset([prepare_episode(ep, cfg, stats, WordTokenizer.build([ep.instruction]))], cfg, sp_steps=2)
+    rng = np.random.default_rng(0)
+    s = ds.sample(6, rng)  # t = 6: steps 6..13, only 6..9 exist
+    assert s["action_mask"].tolist() == [1, 1, 1, 1, 0, 0, 0, 0]
+    np.testing.assert_array_equal(s["actions"][4:], np.repeat(s["actions"][3:4], 4, axis=0))
+    assert s["value_mask"].tolist() == [1, 1, 1, 1, 0, 0]
+    assert (s["sp_index"] + 1 <= 3).all()  # o_{t+k} must exist: t + k <= 9
+    assert s["images"].shape == (2, 16, 16, 3) and s["sp_images"].shape == (2, 2, 16, 16, 3)
+    last = ds.sample(9, rng)
+    assert last["sp_mask"].tolist() == [0, 0]
+
+
+def test_action_stats_q99_and_binary_gripper():
+    a = np.random.default_rng(0).normal(0, 0.1, size=(1000, 7)).astype(np.float32)
+    a[:, 6] = np.where(a[:, 6] > 0, 1.0, -1.0)
+    st = ActionStats.fit(a)
+    n = st.normalize(a)
+    assert n.min() >= -1 and n.max() <= 1
+    assert set(np.unique(n[:, 6])) == {-1.0, 1.0}
+    inside = (a[:, :6] > st.q01[0]) & (a[:, :6] < st.q99[0])
+    np.testing.assert_allclose(st.unnormalize(n)[:, 0][inside[:, 0]], a[:, 0][inside[:, 0]], atol=1e-5)
+
+
+def test_gae_hand_computed_episode():
+    r = np.array([0.0, 0.0, 1.0], np.float32)
+    v = np.array([0.5, 0.6, 0.8], np.float32)
+    d = np.array([0, 0, 1], np.float32)
+    g, lam = 0.9, 0.5
+    d2 = 1.0 - 0.8
+    d1 = 0.0 + g * 0.8 - 0.6
+    d0 = 0.0 + g * 0.6 - 0.5
+    a2 = d2
+    a1 = d1 + g * lam * a2
+    a0 = d0 + g * lam * a1
+    adv, ret = gae(r, v, d, g, lam)
+    np.testing.assert_allclose(adv, [a0, a1, a2], atol=1e-6)
+    np.testing.assert_allclose(ret, [a0 + 0.5, a1 + 0.6, a2 + 0.8], atol=1e-6)

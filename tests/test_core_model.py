@@ -1,0 +1,106 @@
+import numpy as np
+import pytest
+import torch
+
+from pivla.data.transforms import batch_to_tensors
+from pivla.model.cms import CMSModel
+from pivla.model.config import BackboneConfig, ModelConfig
+from pivla.training.losses import LossConfig, actor_loss, critic_loss, unified_loss
+
+CFG = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32)))
+
+
+def fake_batch(cfg=CFG, B=3, S=2, seed=0):
+    rng = np.random.default_rng(seed)
+    K, D, H, n = cfg.chunk, cfg.action_dim, cfg.horizon, len(cfg.cameras)
+    actions = rng.uniform(-1, 1, (B, K, D)).astype(np.float32)
+    batch = {
+        "images": rng.integers(0, 255, (B, n, 32, 32, 3), dtype=np.uint8),
+        "text_ids": rng.integers(1, 10, (B, 16)),
+        "text_mask": np.ones((B, 16), bool),
+        "proprio": rng.normal(size=(B, cfg.proprio_dim)).astype(np.float32),
+        "actions": actions,
+        "bins": np.clip(((actions + 1) / 2 * 256).astype(np.int64), 0, 255),
+        "action_mask": np.ones((B, K), np.float32),
+        "imitate": np.ones(B, np.float32),
+        "advantages": rng.normal(size=(B, K)).astype(np.float32),
+        "returns": rng.uniform(size=(B, H + 1)).astype(np.float32),
+        "value_mask": np.ones((B, H + 1), np.float32),
+        "sp_index": rng.integers(0, K, (B, S)),
+        "sp_images": rng.integers(0, 255, (B, S, n, 32, 32, 3), dtype=np.uint8),
+        "sp_mask": np.ones((B, S), np.float32),
+    }
+    return batch_to_tensors(batch)
+
+
+def test_head_shapes():
+    torch.manual_seed(0)
+    m = CMSModel(CFG, vocab_size=12)
+    out = m(fake_batch())
+    assert out.logits.shape == (3, 8, 7, 256)
+    assert out.continuous.shape == (3, 8, 7)
+    assert out.latents.shape == (3, 8, m.latent_dim)
+    assert out.values.shape == (3, 5) and out.value_now.shape == (3,)
+    assert out.h_cog.shape == (3, CFG.backbone.n_cog_tokens, 64) and out.h_mot.shape == (3, 8, 64)
+    assert m.decoder(out.latents).shape == (3, 8, 3, CFG.decoder_size, CFG.decoder_size)
+    assert m.target(fake_batch()["images"]).shape == (3, m.latent_dim)
+
+
+def _grads(model, loss):
+    model.zero_grad(set_to_none=True)
+    loss.backward()
+    groups = {
+        "backbone": model.backbone, "discrete": model.discrete_head, "continuous": model.continuous_head,
+        "value": model.value_head, "state": model.state_predictor, "decoder": model.decoder,
+    }
+    got = {k for k, mod in groups.items() if any(p.grad is not None and p.grad.abs().sum() > 0 for p in mod.parameters())}
+    if model.log_sigma.grad is not None and model.log_sigma.grad.abs().sum() > 0:
+        got.add("log_sigma")
+    assert all(p.grad is None for p in model.target.parameters()), "the target encoder must never train"
+    return got
+
+
+@pytest.mark.parametrize("term,expected", [
+    ("il", {"backbone", "discrete", "continuous"}),
+    ("actor", {"backbone", "continuous", "log_sigma"}),
+    ("critic", {"backbone", "value"}),
+    ("sp", {"backbone", "state"}),
+    ("recon", {"decoder"}),
+])
+def test_each_term_reaches_only_its_heads(term, expected):
+    torch.manual_seed(0)
+    m = CMSModel(CFG, vocab_size=12)
+    b = fake_batch()
+    only = dict(use_rl=False, use_sp=False, use_recon=False)
+    if term == "il":
+        loss, _ = unified_loss(m, m(b), b, LossConfig(**only))
+    elif term == "actor":
+        out = m(b)
+        loss = actor_loss(out.continuous, m.log_sigma, b["actions"], b["advantages"], b["action_mask"])
+    elif term == "critic":
+        out = m(b)
+        loss = critic_loss(out.values, out.value_now, b["returns"], b["value_mask"])
+    elif term == "sp":
+        out = m(b)
+        cfg = LossConfig(use_rl=False, use_recon=False)
+        full, logs = unified_loss(m, out, b, cfg)
+        il, _ = unified_loss(m, out, b, LossConfig(**only))
+        loss = full - il
+    else:
+        out = m(b)
+        full, _ = unified_loss(m, out, b, LossConfig(use_rl=False, use_sp=False, use_recon=True))
+        il, _ = unified_loss(m, out, b, LossConfig(**only))
+        loss = full - il
+    assert _grads(m, loss) == expected
+
+
+def test_ema_target_moves_towards_online_encoder():
+    torch.manual_seed(0)
+    m = CMSModel(CFG, vocab_size=12)
+    with torch.no_grad():
+        for p in m.backbone.vision.parameters():
+            p.add_(1.0)
+    before = [p.clone() for p in m.target.parameters()]
+    m.update_target()
+    for b, a, o in zip(before, m.target.parameters(), m.backbone.vision.parameters()):
+        torch.testing.assert_close(a, b + (o.detach() - b) * (1 - CFG.target_encoder.ema_decay))

@@ -1,0 +1,105 @@
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from pivla import load_policy
+from pivla.training import checkpoint as ck
+from pivla.training.trainer import Trainer, train
+from tests.conftest import tiny_train_config
+
+
+def _obs(seed=0):
+    rng = np.random.default_rng(seed)
+    return {
+        "agentview_rgb": rng.integers(0, 255, (32, 32, 3), dtype=np.uint8),
+        "eye_in_hand_rgb": rng.integers(0, 255, (48, 48, 3), dtype=np.uint8),  # resized by the policy
+        "ee_pos": np.zeros(3), "ee_ori": np.zeros(3), "gripper_states": np.zeros(2),
+        "instruction": "move the square left",
+    }
+
+
+def test_overfits_a_tiny_dataset(tmp_path):
+    from pivla.data.synthetic import make_synthetic_dataset
+
+    data = make_synthetic_dataset(tmp_path / "d", episodes_per_goal=1, T=10, size=32)
+    cfg = tiny_train_config(data, tmp_path / "run", steps=250, batch_size=16, lr=2e-3, warmup=10, val_fraction=0.0,
+                            augment_pad=0, eval_every=1000, ckpt_every=1000)
+    cfg = dataclasses.replace(cfg, loss=dataclasses.replace(cfg.loss, use_rl=False, use_sp=False, use_recon=False))
+    t = Trainer(cfg)
+    first = t.train_step()["il"]
+    for _ in range(cfg.steps - 1):
+        last = t.train_step()["il"]
+    assert last < first / 10, (first, last)
+
+
+def test_run_dir_load_policy_and_identical_outputs(tmp_path, synthetic_data):
+    run = train(tiny_train_config(synthetic_data, tmp_path / "run"))
+    for name in (ck.MODEL_FILE, ck.CONFIG_FILE, ck.STATS_FILE, ck.TOKENIZER_FILE, ck.STATUS_FILE):
+        assert (run / name).exists(), name
+    assert json.loads((run / ck.STATUS_FILE).read_text())["done"]
+    p1, p2 = load_policy(run, device="cpu"), load_policy(run, device="cpu")
+    o1, o2 = p1.infer(_obs()), p2.infer(_obs())
+    assert o1["actions"].shape == (8, 7) and o1["discrete_probs"].shape == (8, 7, 256)
+    assert o1["latents"].shape == (8, p1.model.latent_dim) and o1["values"].shape == (5,)
+    for k in o1:
+        np.testing.assert_array_equal(o1[k], o2[k])
+    np.testing.assert_allclose(o1["discrete_probs"].sum(-1), 1.0, atol=1e-5)
+    assert set(np.unique(o1["actions"][:, 6])) <= {-1.0, 1.0}
+    batch = p1.infer_batch([_obs(0), _obs(1)])
+    np.testing.assert_allclose(batch["actions"][0], o1["actions"], atol=1e-5)
+    assert not any(p.suffix in (".pt", ".pth", ".pkl", ".bin") for p in run.rglob("*"))
+
+
+def test_resume_matches_uninterrupted_run(tmp_path, synthetic_data):
+    full = train(tiny_train_config(synthetic_data, tmp_path / "full", steps=20, ckpt_every=10))
+    interrupted = Trainer(tiny_train_config(synthetic_data, tmp_path / "half", steps=20, ckpt_every=10))
+    interrupted.run_dir.mkdir(parents=True)
+    while interrupted.step < 13:  # dies after step 13; the last checkpoint is step 10
+        if interrupted.step % 10 == 0:
+            interrupted._set_values(interrupted._state_values(interrupted.train_set))
+        interrupted.train_step()
+        if interrupted.step == 10:
+            interrupted._save()
+    resumed = train(tiny_train_config(synthetic_data, tmp_path / "half", steps=20, ckpt_every=10), resume=True)
+    a, b = ck.load_tensors(full / ck.MODEL_FILE), ck.load_tensors(resumed / ck.MODEL_FILE)
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+
+
+def test_bad_observations_and_corrupt_model_get_named_errors(tmp_path, synthetic_data):
+    run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, ckpt_every=2, eval_every=2))
+    policy = load_policy(run, device="cpu")
+    obs = _obs()
+    del obs["ee_pos"]
+    with pytest.raises(KeyError, match="ee_pos"):
+        policy.infer(obs)
+    obs = _obs()
+    obs["ee_pos"] = np.array([np.nan, 0, 0])
+    with pytest.raises(ValueError, match="NaN"):
+        policy.infer(obs)
+    obs = _obs()
+    obs["agentview_rgb"] = obs["agentview_rgb"].astype(np.float32)
+    with pytest.raises(ValueError, match="agentview_rgb"):
+        policy.infer(obs)
+    model = run / ck.MODEL_FILE
+    model.write_bytes(model.read_bytes()[:1000])
+    with pytest.raises(ValueError, match="model.safetensors"):
+        load_policy(run, device="cpu")
+
+
+def test_cli_flags_reach_nested_config(tmp_path, synthetic_data, capsys):
+    from pivla.cli import main
+
+    out = tmp_path / "cli"
+    rc = main(["train", "--data", str(synthetic_data), "--out", str(out), "--steps", "2", "--batch-size", "4",
+               "--model.image_size", "32", "--model.backbone.d_model", "32", "--loss.alpha", "0.2",
+               "--progress", "false", "--ckpt-every", "2", "--eval-every", "2"])
+    assert rc == 0
+    cfg = json.loads((out / ck.CONFIG_FILE).read_text())
+    assert cfg["model"]["backbone"]["d_model"] == 32 and cfg["loss"]["alpha"] == 0.2 and cfg["batch_size"] == 4
+    assert main(["info", str(out)]) == 0
+    assert "step 2/2" in capsys.readouterr().out
