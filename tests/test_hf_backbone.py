@@ -196,6 +196,10 @@ def test_clear_errors_for_bad_checkpoint_dirs(dirs, tmp_path):
         Dinov2Encoder(str(dirs["vlm"]), SIZE)
     with pytest.raises(ValueError, match="no local checkpoint"):
         HFTextTokenizer.from_pretrained("", 16)
+    (tmp_path / "openvla").mkdir()
+    (tmp_path / "openvla" / "config.json").write_text(json.dumps({"model_type": "openvla"}))
+    with pytest.raises(ValueError, match="auto_map"):
+        HFBackbone(model_cfg({"vlm": tmp_path / "openvla", "dino": dirs["dino"]}))
 
 
 def test_cli_flag_spellings():
@@ -213,3 +217,18 @@ def test_cli_flag_spellings():
     bb, te = cfg.model.backbone, cfg.model.target_encoder
     assert (bb.name, bb.path, bb.lora_rank, bb.gradient_checkpointing) == ("hf", "/m", 8, True)
     assert (te.name, te.path) == ("dinov2", "/d")
+
+
+def test_llava_with_a_dinov2_vision_tower(tmp_path):
+    """Another Llava-style layout: DINOv2 tower, second-to-last layer, CLS dropped ('default' strategy)."""
+    path = make_tiny_vlm(tmp_path / "vlm", image_size=SIZE, vision="dinov2")
+    text = HFTextTokenizer.from_pretrained(str(path), 24)
+    backbone = HFBackbone(model_cfg({"vlm": path, "dino": path}))
+    assert type(backbone.parts.tower).__name__ == "Dinov2Model"
+    batch = make_batch(text)
+    with torch.no_grad():
+        n_patch = backbone.parts.image_embeddings(backbone.pixels(batch["images"][:, 0])).shape[1]
+    assert n_patch == (SIZE // (SIZE // 4)) ** 2  # 16 patches, CLS dropped
+    h_cog, h_mot = backbone(batch)
+    h_mot.square().mean().backward()
+    assert h_cog.shape == (2, 2, 64) and backbone.queries.grad.abs().sum() > 0

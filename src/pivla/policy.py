@@ -43,7 +43,8 @@ def select_device(device: str = "auto") -> torch.device:
 
 class Policy:
     def __init__(self, model: CMSModel, stats: NormStats, text: WordTokenizer, run_dir: Path | None = None,
-                 calibration: Calibration | None = None, device: torch.device | None = None):
+                 calibration: Calibration | None = None, device: torch.device | None = None,
+                 action_head: str = "continuous"):
         self.model = model.eval()
         self.cfg = model.cfg
         self.stats = stats
@@ -53,6 +54,8 @@ class Policy:
         self.device = device or next(model.parameters()).device
         self.bin_centers = model.bin_centers.cpu().numpy()
         self.chunk, self.horizon = self.cfg.chunk, self.cfg.horizon
+        # which head's actions are executed: the continuous one, unless the run trained only the discrete one
+        self.action_head = action_head
 
     # -- transforms ------------------------------------------------------------------------------------
     def _check_obs(self, obs: dict) -> None:
@@ -95,9 +98,13 @@ class Policy:
         out = self.model(self.model_inputs(obs_list))
         probs = torch.softmax(out.logits.float(), dim=-1)
         cont = out.continuous.float().clamp(-1, 1).cpu().numpy()
+        deq = (probs @ self.model.bin_centers).cpu().numpy()  # Eq. 12
+        primary = cont if self.action_head == "continuous" else deq
         return {
-            "actions": self.stats.action.unnormalize(cont),
-            "actions_normalized": cont,
+            "actions": self.stats.action.unnormalize(primary),
+            "actions_normalized": primary,
+            "continuous_normalized": cont,
+            "dequantized": deq,
             "discrete_probs": probs.cpu().numpy(),
             "latents": out.latents.float().cpu().numpy(),
             "values": out.values.float().cpu().numpy(),
@@ -105,15 +112,21 @@ class Policy:
         }
 
     def infer(self, obs: dict) -> dict[str, np.ndarray]:
-        """One observation -> actions (K,7) un-normalised, actions_normalized (K,7), discrete_probs
-        (K,7,256), latents (K,d_z) predicted next-observation latents, values (H,), value_now ()."""
+        """One observation -> actions (K,7) un-normalised from the primary head, actions_normalized (K,7),
+        continuous_normalized and dequantized (K,7) (both heads, normalized; Eq. 12 for the latter),
+        discrete_probs (K,7,256), latents (K,d_z) predicted next-observation latents, values (H,),
+        value_now ()."""
         return {k: v[0] for k, v in self.infer_batch([obs]).items()}
 
     @torch.inference_mode()
+    def encode_batch(self, obs_list: list[dict]) -> np.ndarray:
+        """Enc(o) for several observations: (N, d_z) target-encoder latents in the units of ``latents``."""
+        images = images_to_tensor(self._images(obs_list), self.device)
+        return self.model.target(images).float().cpu().numpy()
+
     def encode(self, obs: dict) -> np.ndarray:
-        """Enc(o): the target encoder's latent of an observation, in the units of ``latents``."""
-        images = images_to_tensor(self._images([obs]), self.device)
-        return self.model.target(images)[0].float().cpu().numpy()
+        """Enc(o): the target encoder's latent of one observation (AURD's observed latent)."""
+        return self.encode_batch([obs])[0]
 
     def to_actions(self, normalized: np.ndarray) -> np.ndarray:
         return self.stats.action.unnormalize(normalized)
@@ -136,4 +149,5 @@ def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0) -> 
     calib = None
     if (run_dir / ck.CALIBRATION_FILE).exists():
         calib = Calibration(**ck.read_json(run_dir / ck.CALIBRATION_FILE))
-    return Policy(model.to(dev), stats, text, run_dir, calib, dev)
+    head = "continuous" if cfg.loss.use_continuous else "discrete"
+    return Policy(model.to(dev), stats, text, run_dir, calib, dev, action_head=head)

@@ -32,6 +32,11 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--paraphrase", action="store_true", help="draw an instruction paraphrase per episode")
         parser.add_argument("--keep-failures", action="store_true",
                             help="keep failed expert episodes instead of replacing them with new seeds")
+        parser.add_argument("--policy", default=None,
+                            help="record rollouts of this trained run instead of expert demos: successes and "
+                                 "failures with rewards, for the RL and value terms (`pivla train --extra-data`)")
+        parser.add_argument("--executor", default="fixed", choices=["aurd", "fixed", "ensemble", "adahorizon"],
+                            help="executor of the policy rollouts (with --policy)")
         parser.set_defaults(func=collect)
     elif command == "export-video":
         parser.add_argument("dataset", help="dataset directory (or one .hdf5 file)")
@@ -55,6 +60,8 @@ def collect(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.episodes < 1:
         raise SystemExit("--episodes must be >= 1")
+    if args.policy:
+        return collect_rollouts(args)
     try:
         perturb = parse_perturb(args.perturb)
         specs = select_tasks(args.env, args.suite, args.tasks)
@@ -114,6 +121,19 @@ def collect(args: argparse.Namespace) -> int:
                       args.episodes, attempts[spec.name])
             status = 1
     return status
+
+
+def collect_rollouts(args: argparse.Namespace) -> int:
+    """Policy rollouts, every one kept with its success, through the evaluation runner (same seeds logic,
+    workers, traces); the dataset goes to ``--out``, the evaluation record to ``--out/rollout_eval``."""
+    from pivla.evaluation.runner import EvalConfig, evaluate
+
+    cfg = EvalConfig(policy=args.policy, out=str(Path(args.out) / "rollout_eval"), env=args.env, suite=args.suite,
+                     tasks=args.tasks, executor=args.executor, episodes=args.episodes, seed=args.seed,
+                     perturb=args.perturb, realism=args.realism, workers=args.workers, videos=0, record=args.out)
+    res = evaluate(cfg)
+    log.info("recorded %d rollouts (%d successes) -> %s", res["episodes"], res["successes"], args.out)
+    return 0
 
 
 def _write_mp4(path: Path, frames, fps: int) -> None:

@@ -73,7 +73,7 @@ class PreparedEpisode:
     dones: np.ndarray
     text_ids: np.ndarray
     text_mask: np.ndarray
-    imitate: bool  # expert or successful episodes feed the imitation terms
+    imitate: bool  # only successful episodes feed the imitation terms; failures teach the value head
 
 
 def prepare_episode(ep: Episode, cfg: ModelConfig, stats: NormStats, text: WordTokenizer) -> PreparedEpisode:
@@ -94,7 +94,7 @@ def prepare_episode(ep: Episode, cfg: ModelConfig, stats: NormStats, text: WordT
         dones=ep.dones.astype(np.float32),
         text_ids=ids,
         text_mask=mask,
-        imitate=bool(ep.success) or ep.source == "expert",
+        imitate=bool(ep.success),
     )
 
 
@@ -192,6 +192,22 @@ def augment_shift(images: np.ndarray, rng: np.random.Generator, pad: int) -> np.
     dx, dy = rng.integers(0, 2 * pad + 1, size=(2, len(flat)))
     out = np.stack([padded[i, dy[i] : dy[i] + H, dx[i] : dx[i] + W] for i in range(len(flat))])
     return out.reshape(*lead, H, W, C)
+
+
+def augment_color(images: np.ndarray, rng: np.random.Generator, strength: float) -> np.ndarray:
+    """Photometric augmentation per image: brightness, contrast and per-channel gain jitter, so that a
+    policy trained in one scene is less tied to its exact colours and lighting (unseen environments)."""
+    if strength <= 0:
+        return images
+    *lead, H, W, C = images.shape
+    flat = images.reshape(-1, H, W, C).astype(np.float32)
+    n = len(flat)
+    bright = rng.uniform(-strength, strength, (n, 1, 1, 1)) * 255
+    contrast = rng.uniform(1 - strength, 1 + strength, (n, 1, 1, 1))
+    gain = rng.uniform(1 - strength / 2, 1 + strength / 2, (n, 1, 1, C))
+    mean = flat.mean(axis=(1, 2, 3), keepdims=True)
+    out = ((flat - mean) * contrast + mean) * gain + bright
+    return np.clip(out, 0, 255).astype(np.uint8).reshape(*lead, H, W, C)
 
 
 def collate(samples: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

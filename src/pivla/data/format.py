@@ -111,6 +111,7 @@ def write_episodes(path: str | Path, episodes: list[Episode], env_meta: dict | N
                         obs.create_dataset(key, data=arr)
                 total += len(ep)
             data.attrs["total"] = total
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

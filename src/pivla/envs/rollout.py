@@ -100,10 +100,10 @@ def run_jobs(jobs: Sequence[tuple[EnvFactory, int]], actor: Actor, *, workers: i
     progress = tqdm(total=len(jobs), desc=desc, unit="ep", disable=desc is None, leave=False)
     try:
         if workers <= 1 or len(jobs) <= 1:
-            envs: dict[bytes, Any] = {}
+            envs: dict[int, Any] = {}  # by identity: in-process factories need not be picklable
             episodes = []
             for factory, seed in jobs:
-                key = pickle.dumps(factory)
+                key = id(factory)
                 if key not in envs:
                     envs[key] = factory()
                 episodes.append(run_episode(envs[key], actor, seed))

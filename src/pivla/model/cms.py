@@ -114,15 +114,18 @@ class TargetEncoder(nn.Module):
     divided by sqrt(d_z), so that an L2 distance between two latents is an RMS error per feature.
     """
 
-    def __init__(self, encoder: nn.Module, kind: str, ema_decay: float):
+    def __init__(self, encoder: nn.Module, kind: str, ema_decay: float, cameras: int = 1):
         super().__init__()
         self.encoder = encoder
         self.kind = kind
         self.ema_decay = ema_decay
+        self.cameras = cameras
         self.encoder.requires_grad_(False)
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """(..., n_cam, 3, H, W) images in [0, 1] -> (..., d_z) latents of the first ``cameras`` cameras."""
+        images = images[..., : self.cameras, :, :, :]
         lead = images.shape[:-4]
         z = self.encoder.pooled(images.flatten(0, len(lead) - 1) if len(lead) > 1 else images)
         z = F.layer_norm(z.float(), z.shape[-1:]) / math.sqrt(z.shape[-1])
@@ -142,11 +145,11 @@ def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder
     if tc.name in ("ema", "frozen"):
         if not hasattr(backbone, "vision"):
             raise ValueError(f"target encoder {tc.name!r} needs a backbone with a 'vision' encoder; use dinov2")
-        return TargetEncoder(copy.deepcopy(backbone.vision), tc.name, tc.ema_decay)
+        return TargetEncoder(copy.deepcopy(backbone.vision), tc.name, tc.ema_decay, tc.cameras)
     if tc.name == "dinov2":
         from pivla.model.dinov2 import Dinov2Encoder
 
-        return TargetEncoder(Dinov2Encoder(tc.path, cfg.image_size), "frozen", tc.ema_decay)
+        return TargetEncoder(Dinov2Encoder(tc.path, cfg.image_size), "frozen", tc.ema_decay, tc.cameras)
     raise ValueError(f"unknown target encoder {tc.name!r}; choose 'ema', 'frozen' or 'dinov2'")
 
 
@@ -204,7 +207,8 @@ class CMSModel(nn.Module):
     def load_checkpoint_state(self, state: dict[str, torch.Tensor], source: str = "checkpoint") -> None:
         """Inverse of ``state_dict_for_checkpoint``: every other key must match exactly."""
         missing, unexpected = self.load_state_dict(state, strict=False)
-        missing = [k for k in missing if k not in self.external_state_keys()]
+        external = self.external_state_keys()
+        missing = [k for k in missing if k not in external]
         if missing or unexpected:
             raise ValueError(f"{source}: does not match the model built from config.json "
                              f"(missing {missing[:5]}, unexpected {unexpected[:5]})")

@@ -37,6 +37,9 @@ class TargetEncoderConfig:
     name: str = "ema"
     ema_decay: float = 0.995
     path: str = ""
+    # how many of the policy's cameras (leading ones; the agent view first) the latent describes. One by
+    # default: AURD encodes every new observation, and the scene camera carries the task state.
+    cameras: int = 1
 
 
 @dataclass

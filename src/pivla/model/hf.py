@@ -106,8 +106,9 @@ class PixelSpec:
             raise ValueError(f"expected images (N, 3, H, W), got {tuple(images.shape)}")
         x = images.float()
         if x.shape[-1] != self.resize or x.shape[-2] != self.resize:
-            x = F.interpolate(x, size=(self.resize, self.resize), mode=self.mode, align_corners=False,
-                              antialias=True).clamp_(0.0, 1.0)
+            smooth = self.mode in ("bilinear", "bicubic")
+            x = F.interpolate(x, size=(self.resize, self.resize), mode=self.mode,
+                              align_corners=False if smooth else None, antialias=smooth).clamp_(0.0, 1.0)
         if self.crop < self.resize:
             top = (self.resize - self.crop) // 2
             x = x[..., top : top + self.crop, top : top + self.crop]
@@ -297,8 +298,7 @@ class HFBackbone(nn.Module):
         super().__init__()
         bc = cfg.backbone
         path = check_local_dir(bc.path, "backbone hf")
-        self.dtype = resolve_dtype(bc.dtype)
-        kind, vlm = load_vlm(path, self.dtype)
+        kind, vlm = load_vlm(path, resolve_dtype(bc.dtype))
         vlm.requires_grad_(False)
         self.lora = bc.lora_rank > 0
         if self.lora:
@@ -310,7 +310,11 @@ class HFBackbone(nn.Module):
         self.vlm = vlm
         self.kind = kind
         if bc.gradient_checkpointing:
-            self.base_model().gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+            base = self.base_model()
+            if hasattr(base, "activation_checkpointing_enable"):  # transformers >= 5.20
+                base.activation_checkpointing_enable(activation_checkpointing_kwargs={"use_reentrant": False})
+            else:
+                base.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
         self.parts = _Parts(kind, self.base_model())
         self.pixels = PixelSpec.from_dir(path, self.parts.vision_size)
         d = self.parts.hidden
@@ -445,23 +449,28 @@ def write_tiny_tokenizer(out: Path) -> None:
     tok.save_pretrained(str(out))
 
 
-def make_tiny_vlm(out: str | Path, image_size: int = 32, hidden: int = 64, layers: int = 2, seed: int = 0) -> Path:
-    """A random Llava (SigLIP vision + Llama) with tokenizer and preprocessor config, for CPU tests and
-    smoke runs of the ``hf`` path. Random weights: it learns, but knows nothing."""
-    from transformers import LlamaConfig, LlavaConfig, LlavaForConditionalGeneration, SiglipVisionConfig
+def make_tiny_vlm(out: str | Path, image_size: int = 32, hidden: int = 64, layers: int = 2, seed: int = 0,
+                  vision: str = "siglip") -> Path:
+    """A random Llava (``siglip`` or ``dinov2`` vision + Llama) with tokenizer and preprocessor config, for
+    CPU tests and smoke runs of the ``hf`` path. Random weights: it learns, but knows nothing."""
+    from transformers import Dinov2Config, LlamaConfig, LlavaConfig, LlavaForConditionalGeneration, SiglipVisionConfig
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_tiny_tokenizer(out)
     n_vocab = len(json.loads((out / "tokenizer.json").read_text())["model"]["vocab"])
     patch = max(image_size // 4, 1)
+    tower = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=2,
+                 image_size=image_size, patch_size=patch)
+    if vision not in ("siglip", "dinov2"):
+        raise ValueError(f"unknown tiny vision tower {vision!r}; choose siglip or dinov2")
     cfg = LlavaConfig(
-        vision_config=SiglipVisionConfig(hidden_size=32, intermediate_size=64, num_hidden_layers=2,
-                                         num_attention_heads=2, image_size=image_size, patch_size=patch),
+        vision_config=SiglipVisionConfig(**tower) if vision == "siglip" else Dinov2Config(**tower),
         text_config=LlamaConfig(hidden_size=hidden, intermediate_size=2 * hidden, num_hidden_layers=layers,
                                 num_attention_heads=4, num_key_value_heads=2, vocab_size=n_vocab,
                                 max_position_embeddings=512),
-        image_token_id=0, vision_feature_layer=-1, vision_feature_select_strategy="full",
+        image_token_id=0, vision_feature_layer=-2 if vision == "dinov2" else -1,
+        vision_feature_select_strategy="full" if vision == "siglip" else "default",
     )
     torch.manual_seed(seed)
     LlavaForConditionalGeneration(cfg).save_pretrained(str(out))

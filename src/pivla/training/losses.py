@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from pivla.model.cms import CMSModel, CMSOutput
 
 
-SIGMA_MIN, SIGMA_MAX, ADV_CLIP = 0.05, 1.0, 3.0
+SIGMA_MIN, SIGMA_MAX, ADV_CLIP, RESIDUAL_CAP = 0.05, 1.0, 3.0, 3.0
 
 
 @dataclass

@@ -20,7 +20,7 @@ import torch
 
 from pivla import config as cfgmod
 from pivla.data.dataset import (
-    ChunkDataset, augment_shift, collate, epoch_batch_indices, fit_norm_stats, prepare_episode, split_episodes,
+    ChunkDataset, augment_color, augment_shift, collate, epoch_batch_indices, fit_norm_stats, prepare_episode, split_episodes,
 )
 from pivla.data.format import DatasetError, read_dataset
 from pivla.data.normalize import NormStats
@@ -49,7 +49,8 @@ class TrainConfig:
     grad_clip: float = 1.0
     seed: int = 0
     val_fraction: float = 0.1
-    augment_pad: int = 4
+    augment_pad: int = 4  # random-shift augmentation (pixels)
+    augment_color: float = 0.2  # photometric jitter strength (0 = off)
     log_every: int = 25
     eval_every: int = 500
     ckpt_every: int = 500
@@ -183,8 +184,8 @@ class Trainer:
         idx = epoch_batch_indices(len(dataset), cfg.batch_size, step, cfg.seed + seed_offset, rank, world)
         rng = np.random.default_rng([cfg.seed + seed_offset, step, rank])
         batch = collate([dataset.sample(int(i), rng) for i in idx])
-        if augment and cfg.augment_pad > 0:
-            batch["images"] = augment_shift(batch["images"], rng, cfg.augment_pad)
+        if augment:
+            batch["images"] = augment_color(augment_shift(batch["images"], rng, cfg.augment_pad), rng, cfg.augment_color)
         return batch_to_tensors(batch, self.device)
 
     # -- value refresh for the RL term -------------------------------------------------------------------

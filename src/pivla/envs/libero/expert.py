@@ -6,11 +6,11 @@ collision geometry and poses from MuJoCo, and plans:
 
 - a grasp: concave objects (bowls: a ray straight down through the centre lands near the bottom) are
   grasped by the rim, with the fingers closing radially; the rim angle is chosen by casting vertical rays
-  over the fingers' footprint so that no other body (drawer walls, the cookie box, the ramekin) stands
-  above the fingertips. Convex objects (cans, bottles, boxes) are grasped from the top, across their
+  under both fingers so that nothing (drawer walls, the cookie box, the bowl's own walls) stands above
+  the fingertips. Convex objects (cans, bottles, boxes) are grasped from the top, across their
   narrowest horizontal side;
 - a lift high enough to clear every body between the pick and the place;
-- a release with the object's bottom just above the target's top (plate) or well inside it (basket).
+- a release with the object's bottom just above the target's top (plate) or its rim (basket).
 
 Motion is closed-loop proportional control of the end effector towards waypoints, in LIBERO's own
 action space (OSC_POSE deltas, 0.05 m / 0.5 rad at full scale), so recorded actions are what a policy
@@ -19,6 +19,7 @@ has to output.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -164,8 +165,9 @@ class _Plan:
 class PickPlaceExpert:
     """Scripted expert for one "pick X and put it on/in Y" task; call it as ``expert(env, obs) -> action``.
 
-    It plans when it sees a new episode (``env.episode_id`` changes) and then runs a fixed sequence of
-    waypoints with closed-loop proportional control.
+    It plans when it sees a new episode (``env.episode_id`` changes), plans the grasp again once above
+    the object (objects may still be settling), and retries the grasp when the object did not come up.
+    Each phase is closed-loop proportional control of the eef towards a waypoint.
     """
 
     def __init__(self, config: ExpertConfig = ExpertConfig()) -> None:
@@ -198,7 +200,7 @@ class PickPlaceExpert:
         hit, root = sc.ray_down(centre[:2], z_top + 0.05)
         concave = root == self.obj and hit < z_top - 0.5 * (z_top - lo[2])
         if concave:
-            return self._plan_rim(centre, half, lo, hi)
+            return self._plan_rim(half, hi)
         # Convex object: grasp across the narrow side, fingertips a little below the top.
         narrow = axes[int(np.argmin(half[:2]))]
         floor_z = self._floor_below(lo, hi)
@@ -216,7 +218,7 @@ class PickPlaceExpert:
             zs.append(z)
         return max(min(zs), lo[2]) if np.isfinite(min(zs)) else lo[2]
 
-    def _plan_rim(self, centre: np.ndarray, half: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> _Plan:
+    def _plan_rim(self, half: np.ndarray, hi: np.ndarray) -> _Plan:
         """Pick the rim angle where both fingers can go deepest: nothing (the bowl itself included) under them."""
         sc, cfg = self.scene, self.config
         radius = float(np.mean(half[:2]))
@@ -244,7 +246,8 @@ class PickPlaceExpert:
             tip_z = max(rim_top - cfg.rim_depth, under + 0.004)
             depth = rim_top - tip_z
             yaw = _closing_yaw(radial)
-            score = min(depth, cfg.rim_depth) - 0.004 * abs(yaw)
+            margin = tip_z - under  # room under the fingers: prefer grasps away from walls and neighbours
+            score = min(depth, cfg.rim_depth) + 0.5 * min(margin, 0.03) - 0.004 * abs(yaw)
             if best is None or score > best[0]:
                 best = (score, yaw, np.array([*rim_xy, tip_z + TIP_BELOW_EEF]))
         if best is None:
@@ -307,6 +310,10 @@ class PickPlaceExpert:
             goal, grip, done = self._goal(self.PHASES[self.phase], ee, float(np.linalg.norm(ori_err)))
             if not done:
                 break
+            if self.PHASES[self.phase] == "travel":
+                # Objects may still be settling when the episode starts (a bowl sinking onto a ramekin):
+                # plan the grasp again from where the object is now, just before going down.
+                self.plan = self._plan_grasp()
             if self.PHASES[self.phase] == "lift" and not self._lifted() and self.attempts < cfg.max_attempts:
                 self.attempts += 1
                 self._start_attempt(ee)
@@ -371,3 +378,67 @@ def expert_actor(suite: str, task: int | str) -> Callable[[Any, dict | None], np
     if isinstance(task, int) and not 0 <= task < len(names):
         raise ValueError(f"task index {task} out of range: suite {suite!r} has {len(names)} tasks")
     return PickPlaceExpert()
+
+
+def run_expert_episode(env: Any, actor: Callable[[Any, dict | None], np.ndarray], init_state: int) -> dict:
+    """Roll out the expert from one official init state; returns success, steps and grasp attempts."""
+    obs, info = env.reset(options={"init_state": init_state})
+    success, steps = bool(info["success"]), 0
+    while not success:
+        obs, _, terminated, truncated, info = env.step(actor(env, obs))
+        steps += 1
+        success = bool(info["success"])
+        if terminated or truncated:
+            break
+    return {"init_state": init_state, "success": success, "steps": steps, "attempts": getattr(actor, "attempts", 1)}
+
+
+def measure_experts(suite: str, tasks: list[int] | None = None, episodes: int = 10, first_init: int = 0) -> dict:
+    """Per-task expert success over ``episodes`` init states (no rendering), one env at a time."""
+    from pivla.envs.libero.env import list_tasks, make_env
+
+    specs = list_tasks(suite)
+    results: dict[str, Any] = {"suite": suite, "episodes_per_task": episodes, "tasks": []}
+    for index in tasks if tasks is not None else range(len(specs)):
+        env = make_env(suite, index, render=False)
+        try:
+            actor = expert_actor(suite, index)
+            eps = [run_expert_episode(env, actor, first_init + e) for e in range(episodes)]
+        finally:
+            env.close()
+        row = {"task": index, "name": specs[index].name, "successes": sum(e["success"] for e in eps),
+               "episodes": len(eps), "mean_steps": float(np.mean([e["steps"] for e in eps])),
+               "failed_init_states": [e["init_state"] for e in eps if not e["success"]]}
+        logging.getLogger(__name__).info("%s task %d: %d/%d", suite, index, row["successes"], row["episodes"])
+        results["tasks"].append(row)
+    total = sum(r["successes"] for r in results["tasks"])
+    results["success_rate"] = total / max(1, sum(r["episodes"] for r in results["tasks"]))
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m pivla.envs.libero.expert --suite libero_spatial --episodes 10``: per-task expert success."""
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--suite", required=True)
+    parser.add_argument("--tasks", default=None, help="comma-separated task indices (default: all)")
+    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument("--first-init", type=int, default=0, help="first official init state")
+    parser.add_argument("--json", default=None, help="also write the results to this file")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    tasks = [int(t) for t in args.tasks.split(",")] if args.tasks else None
+    results = measure_experts(args.suite, tasks, args.episodes, args.first_init)
+    text = json.dumps(results, indent=1)
+    if args.json:
+        from pathlib import Path
+
+        Path(args.json).write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -202,7 +202,11 @@ class Kinematics:
         return float(np.linalg.norm(target_pos - pos)), float(np.linalg.norm(rotvec_from_mat(target_mat @ mat.T)))
 
     def solve_ik(
-        self, target_pos: np.ndarray, target_euler: np.ndarray, q0: np.ndarray | None = None, iterations: int | None = None
+        self,
+        target_pos: np.ndarray,
+        target_euler: np.ndarray,
+        q0: np.ndarray | None = None,
+        iterations: int | None = None,
     ) -> tuple[np.ndarray, float, float]:
         """Iterate :meth:`ik_step` from ``q0``; returns (q, position error m, rotation error rad).
 

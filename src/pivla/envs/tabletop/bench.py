@@ -2,7 +2,9 @@
 
 ``run_bench(args)`` reads these attributes of ``args`` (all optional): ``image_size`` (96), ``steps`` (200
 env steps per repeat), ``repeats`` (5), ``episodes`` (10 collection episodes), ``suite`` ("pick_place"),
-``realism`` ("ideal"), ``seed`` (0), ``repeatability`` (bool: also measure servo repeatability).
+``realism`` ("ideal"), ``seed`` (0), ``repeatability`` (bool: also measure servo repeatability),
+``expert_episodes`` (0: when > 0, also measure the scripted experts' success per suite and realism with
+that many episodes per task, cameras off).
 """
 
 from __future__ import annotations
@@ -86,6 +88,25 @@ def measure_repeatability(trials: int = 30, seed: int = 0, servo: ServoConfig | 
     return {"rp_mm": float(dist.mean() + 3 * dist.std()), "mean_mm": float(dist.mean()), "max_mm": float(dist.max())}
 
 
+def expert_success(episodes: int, seed: int = 0, suites: tuple[str, ...] = ("pick_place", "drawer", "stack", "long"),
+                   realisms: tuple[str, ...] = ("ideal", "servo")) -> dict[str, dict[str, Any]]:
+    """Success rate of the noise-free expert per suite and realism (``episodes`` per task, no rendering)."""
+    from pivla.envs.rollout import collect_episodes
+
+    out: dict[str, dict[str, Any]] = {}
+    for realism in realisms:
+        for suite in suites:
+            results, steps = [], []
+            for i, task in enumerate(get_suite(suite)):
+                env = make_env(suite, i, realism=realism, render=False)
+                eps = collect_episodes(lambda env=env: env, make_expert(0.0), episodes, seed=seed + i)
+                results += [e.success for e in eps]
+                steps += [len(e) for e in eps]
+            out[f"{suite}/{realism}"] = {"success": float(np.mean(results)), "episodes": len(results),
+                                         "mean_steps": float(np.mean(steps))}
+    return out
+
+
 def run_bench(args: Any) -> dict[str, Any]:
     image_size = int(getattr(args, "image_size", None) or 96)
     steps = int(getattr(args, "steps", None) or 200)
@@ -108,4 +129,6 @@ def run_bench(args: Any) -> dict[str, Any]:
     }
     if getattr(args, "repeatability", False):
         result["servo_repeatability"] = measure_repeatability(seed=seed)
+    if getattr(args, "expert_episodes", 0):
+        result["expert_success_by_suite"] = expert_success(int(args.expert_episodes), seed=seed)
     return result

@@ -23,7 +23,6 @@ import gymnasium
 import mujoco
 import numpy as np
 
-from pivla.envs import TaskSpec
 from pivla.envs.tabletop import arm, tasks
 from pivla.envs.tabletop.perturb import PerturbConfig, Perturber, parse_perturb
 from pivla.envs.tabletop.scene import CAB_HALF_W, asset_files, scene_xml
@@ -127,10 +126,6 @@ class TabletopEnv(gymnasium.Env):
         self._steps = 0
         self._stages = np.zeros((len(self.task.goals), len(STAGES)), bool)
         self._drawer_start = 0.0
-
-    @property
-    def spec_info(self) -> TaskSpec:
-        return TaskSpec(self.suite, self.task_index, self.task.name, self.task.instruction, self.task.max_steps)
 
     # ----------------------------------------------------------------------------------------------- reset
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:

@@ -53,7 +53,9 @@ OBJECTS: dict[str, ObjectDef] = {
     "ball": ObjectDef("ball", "sphere", (0.019,), (0.1, 0.3, 0.9, 1), 0.03, 0.019, 0.019, np.pi / 2, condim=6),
     "rock": ObjectDef("rock", "ellipsoid", (0.017, 0.022, 0.014), (0.3, 0.28, 0.27, 1), 0.05, 0.014, 0.016, np.pi / 2,
                       condim=6),
-    "red_block": ObjectDef("red_block", "box", (0.016, 0.016, 0.016), (0.85, 0.12, 0.1, 1), 0.04, 0.016, 0.018, np.pi / 2),
+    "red_block": ObjectDef(
+        "red_block", "box", (0.016, 0.016, 0.016), (0.85, 0.12, 0.1, 1), 0.04, 0.016, 0.018, np.pi / 2
+    ),
     "green_block": ObjectDef(
         "green_block", "box", (0.021, 0.021, 0.021), (0.1, 0.7, 0.2, 1), 0.08, 0.021, 0.023, np.pi / 2
     ),

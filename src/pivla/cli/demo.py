@@ -1,0 +1,136 @@
+"""``pivla demo``: the main job, end to end on the simulated twin.
+
+collect expert demos on pick_place -> train the default policy -> calibrate AURD on held-out validation
+demos -> evaluate AURD, fixed, ensemble and adahorizon in-distribution and under perturbations -> report.
+Every stage writes into ``--out`` and is skipped when its output already exists, so an interrupted demo
+continues where it stopped. Training, validation and test episodes use disjoint seeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+log = logging.getLogger("pivla.demo")
+
+EXECUTORS = ("aurd", "fixed", "ensemble", "adahorizon")
+
+
+@dataclass
+class DemoConfig:
+    """Sizes of the full run (<= 30 min on 2 CPU cores) and of ``--quick`` (<= 5 min)."""
+
+    train_episodes: int = 40  # per task
+    val_episodes: int = 5  # per task, for calibration only
+    test_episodes: int = 10  # per task and condition
+    steps: int = 2500
+    batch_size: int = 64
+    noise: float = 0.1  # expert noise for diverse demonstrations
+    conditions: tuple[str, ...] = ("in_distribution", "static_distractors", "unseen_env")
+    levels: tuple[int, ...] = (0, 2, 4, 6)  # distraction levels for the Fig. 8 sweep
+    level_executors: tuple[str, ...] = ("aurd", "fixed")
+    level_episodes: int = 5
+    workers: int = 2
+
+
+QUICK = DemoConfig(train_episodes=6, val_episodes=2, test_episodes=2, steps=300, batch_size=32,
+                   levels=(0, 4), level_episodes=1)
+PERTURB = {"in_distribution": None, "static_distractors": "static_distractors", "unseen_env": "unseen_env",
+           "dynamic_distractors": "dynamic_distractors", "camera_jitter": "camera_jitter"}
+
+
+def register(command: str, parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", default="runs/demo")
+    parser.add_argument("--quick", action="store_true", help="a <= 5 min smoke run that still trains and evaluates")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--realism", default="ideal", choices=["ideal", "servo"])
+    parser.add_argument("--steps", type=int, default=None, help="override the number of training steps")
+    parser.add_argument("--workers", type=int, default=None)
+    parser.set_defaults(func=run_demo)
+
+
+def _stage(name: str, done: bool) -> bool:
+    if done:
+        log.info("[%s] already done, skipping", name)
+    else:
+        log.info("[%s] ...", name)
+    return not done
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    from pivla.cli import main as cli
+    from pivla.control.calibrate import calibrate
+    from pivla.data.format import read_dataset
+    from pivla.evaluation.report import write_report
+    from pivla.evaluation.runner import EvalConfig, evaluate
+    from pivla.policy import load_policy
+    from pivla.training.trainer import TrainConfig, train
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    cfg = QUICK if args.quick else DemoConfig()
+    if args.steps:
+        cfg = dataclasses.replace(cfg, steps=args.steps)
+    if args.workers:
+        cfg = dataclasses.replace(cfg, workers=args.workers)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    t_all = time.time()
+
+    def timed(name: str, fn) -> None:
+        t = time.time()
+        fn()
+        timings[name] = round(time.time() - t, 1)
+
+    common = ["--env", "tabletop", "--suite", "pick_place", "--realism", args.realism, "--workers", str(cfg.workers)]
+    train_dir, val_dir, run_dir = out / "data" / "train", out / "data" / "val", out / "policy"
+    if _stage("collect train demos", (train_dir / "rock_right_demo.hdf5").exists()):
+        timed("collect_train", lambda: cli(["collect", *common, "--episodes", str(cfg.train_episodes), "--out", str(train_dir),
+                                            "--seed", str(args.seed), "--noise", str(cfg.noise)]))
+    if _stage("collect validation demos", (val_dir / "rock_right_demo.hdf5").exists()):
+        timed("collect_val", lambda: cli(["collect", *common, "--episodes", str(cfg.val_episodes), "--out", str(val_dir),
+                                          "--seed", str(args.seed + 1)]))
+    status = run_dir / "status.json"
+    trained = status.exists() and json.loads(status.read_text()).get("done", False)
+    if _stage("train", trained):
+        tc = TrainConfig(data=str(train_dir), out=str(run_dir), steps=cfg.steps, batch_size=cfg.batch_size,
+                         seed=args.seed, val_fraction=0.05, eval_every=max(cfg.steps // 5, 1),
+                         ckpt_every=max(cfg.steps // 5, 1), value_refresh_every=max(cfg.steps // 5, 1),
+                         warmup=min(200, cfg.steps // 10))
+        timed("train", lambda: train(tc, resume=(run_dir / "checkpoints").exists()))
+    if _stage("calibrate", (run_dir / "calibration.json").exists()):
+        policy = load_policy(run_dir, device="cpu")
+        timed("calibrate", lambda: calibrate(policy, read_dataset(val_dir), source=str(val_dir)))
+    test_seed = args.seed + 1000
+    for condition in cfg.conditions:
+        for executor in EXECUTORS:
+            target = out / "eval" / condition / executor
+            if _stage(f"eval {condition} {executor}", (target / "results.json").exists()):
+                ec = EvalConfig(policy=str(run_dir), out=str(target), executor=executor, episodes=cfg.test_episodes,
+                                seed=test_seed, perturb=PERTURB[condition], realism=args.realism, workers=cfg.workers)
+                timed(f"eval_{condition}_{executor}", lambda: _report_eval(evaluate(ec, progress=False), condition, executor))
+    for level in cfg.levels:
+        for executor in cfg.level_executors:
+            target = out / "eval" / f"distraction_level_{level}" / executor
+            if _stage(f"eval level {level} {executor}", (target / "results.json").exists()):
+                ec = EvalConfig(policy=str(run_dir), out=str(target), executor=executor, episodes=cfg.level_episodes,
+                                seed=test_seed, perturb=f"level={level}" if level else None, realism=args.realism,
+                                workers=cfg.workers, videos=0)
+                timed(f"eval_level{level}_{executor}", lambda: _report_eval(evaluate(ec, progress=False), f"level {level}", executor))
+    report = write_report(out)
+    timings["total_this_invocation"] = round(time.time() - t_all, 1)
+    (out / "timings.json").write_text(json.dumps(timings, indent=2) + "\n")
+    log.info("timings (s): %s", timings)
+    print(f"demo finished: report at {report}")
+    return 0
+
+
+def _report_eval(res: dict, condition: str, executor: str) -> None:
+    lo, hi = res["ci95"]
+    log.info("  %s / %s: success %.1f%% [%.1f, %.1f] (%d episodes), mean horizon %.2f", condition, executor,
+             100 * res["success_rate"], 100 * lo, 100 * hi, res["episodes"], res["mean_executed_horizon"])

@@ -1,0 +1,113 @@
+"""``pivla eval``, ``pivla calibrate``, ``pivla ablate`` and ``pivla report``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+
+
+def _add_eval_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--env", default="tabletop", choices=["tabletop", "libero"])
+    p.add_argument("--suite", default="pick_place")
+    p.add_argument("--tasks", default=None, help="task indices or names, comma-separated (default: all)")
+    p.add_argument("--episodes", type=int, default=10, help="episodes per task")
+    p.add_argument("--seed", type=int, default=1000, help="base seed of the test episodes")
+    p.add_argument("--perturb", default=None, help="perturbation spec (docs/twin.md)")
+    p.add_argument("--realism", default="ideal", choices=["ideal", "servo"])
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--max-steps", type=int, default=None)
+
+
+def register(command: str, parser: argparse.ArgumentParser) -> None:
+    if command == "eval":
+        parser.add_argument("--policy", required=True, help="run directory")
+        parser.add_argument("--executor", default="aurd", choices=["aurd", "fixed", "ensemble", "adahorizon"])
+        parser.add_argument("--out", required=True)
+        _add_eval_args(parser)
+        parser.add_argument("--videos", type=int, default=2)
+        parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                            help="executor option, e.g. horizon=3 (fixed), check=after (aurd), tau_high=0.2")
+        parser.add_argument("--record", default=None, help="also write every rollout into this dataset directory")
+        parser.set_defaults(func=cmd_eval)
+    elif command == "calibrate":
+        parser.add_argument("--policy", required=True, help="run directory")
+        parser.add_argument("--data", required=True, help="validation dataset (successful episodes are used)")
+        parser.add_argument("--tau-low-pct", type=float, default=50.0)
+        parser.add_argument("--tau-high-pct", type=float, default=95.0)
+        parser.add_argument("--v-pct", type=float, default=10.0)
+        parser.add_argument("--eta", type=float, default=0.7)
+        parser.set_defaults(func=cmd_calibrate)
+    elif command == "ablate":
+        parser.add_argument("--data", required=True, help="training dataset")
+        parser.add_argument("--val", required=True, help="validation dataset (calibration)")
+        parser.add_argument("--out", required=True)
+        parser.add_argument("--steps", type=int, default=3000)
+        parser.add_argument("--variants", default=None, help="comma-separated subset of the ablation variants")
+        _add_eval_args(parser)
+        parser.set_defaults(func=cmd_ablate)
+    elif command == "report":
+        parser.add_argument("dir", help="directory with one or more evaluations (results.json)")
+        parser.set_defaults(func=cmd_report)
+
+
+def _parse_options(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise SystemExit(f"--option {item!r}: expected KEY=VALUE")
+        k, v = item.split("=", 1)
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from pivla.evaluation.runner import EvalConfig, evaluate
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    cfg = EvalConfig(policy=args.policy, out=args.out, env=args.env, suite=args.suite, tasks=args.tasks,
+                     executor=args.executor, episodes=args.episodes, seed=args.seed, perturb=args.perturb,
+                     realism=args.realism, workers=args.workers, videos=args.videos, max_steps=args.max_steps,
+                     executor_options=_parse_options(args.option), record=args.record)
+    res = evaluate(cfg)
+    lo, hi = res["ci95"]
+    print(f"{args.executor}: success {res['success_rate']:.1%} [{lo:.1%}, {hi:.1%}] over {res['episodes']} episodes; "
+          f"mean horizon {res['mean_executed_horizon']:.2f}, replans {res['replans']}, prunes {res['prunes']}, "
+          f"pauses {res['pauses']}, control {res['control_hz']:.0f} Hz -> {args.out}/results.json")
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from pivla import load_policy
+    from pivla.control.calibrate import CalibrationConfig, calibrate
+    from pivla.data.format import read_dataset
+
+    policy = load_policy(args.policy, device="cpu")
+    cfg = CalibrationConfig(args.tau_low_pct, args.tau_high_pct, args.v_pct, args.eta)
+    calib, stats = calibrate(policy, read_dataset(args.data), cfg, source=str(args.data))
+    print(json.dumps({"calibration": vars(calib), **stats}, indent=2))
+    return 0
+
+
+def cmd_ablate(args: argparse.Namespace) -> int:
+    from pivla.evaluation.ablate import AblationConfig, run_ablation
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    cfg = AblationConfig(data=args.data, val=args.val, out=args.out, steps=args.steps, env=args.env, suite=args.suite,
+                         tasks=args.tasks, episodes=args.episodes, seed=args.seed, perturb=args.perturb,
+                         realism=args.realism, workers=args.workers,
+                         variants=tuple(args.variants.split(",")) if args.variants else None)
+    table = run_ablation(cfg)
+    print(table)
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from pivla.evaluation.report import write_report
+
+    path = write_report(args.dir)
+    print(f"report written to {path}")
+    return 0

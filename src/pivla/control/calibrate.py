@@ -1,0 +1,97 @@
+"""Calibration of AURD's thresholds on validation data (never on test episodes).
+
+For every sampled time t of every successful validation episode, the policy's plan gives U_act[k] and
+V[k]; the episode's real next observations give U_pred[k] = ||Enc(o_{t+k}) - z_hat_{t+k}|| exactly as
+AURD sees it online (the newest prediction error before step k; 0 for k = 0). Thresholds are percentiles
+of these in-distribution signals: tau_low = P50(U), tau_high = P95(U), V_thresh = P10(V) by default, so
+that on data like the validation set AURD rarely intervenes, and it intervenes when signals leave that
+range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pivla.control.math import action_uncertainty
+from pivla.data.format import Episode
+from pivla.policy import Calibration, Policy
+from pivla.training.checkpoint import CALIBRATION_FILE, atomic_write_json
+
+
+@dataclass
+class CalibrationConfig:
+    tau_low_pct: float = 50.0
+    tau_high_pct: float = 95.0
+    v_pct: float = 10.0
+    eta: float = 0.7
+    stride: int = 2  # every stride-th time step of each episode
+    batch: int = 64
+
+
+def _obs_at(ep: Episode, t: int) -> dict:
+    obs = {k: v[t] for k, v in ep.obs.items()}
+    obs["instruction"] = ep.instruction
+    return obs
+
+
+def calibration_signals(policy: Policy, episodes: list[Episode], cfg: CalibrationConfig) -> dict[str, np.ndarray]:
+    """U (N, H), U_act, U_pred and V (N, H) for sampled steps of successful episodes (NaN where o_{t+k}
+    lies past the episode end)."""
+    H = policy.horizon
+    us, uas, ups, vs = [], [], [], []
+    for ep in episodes:
+        if not ep.success:
+            continue
+        T = len(ep)
+        z = np.concatenate([policy.encode_batch([_obs_at(ep, t) for t in range(s, min(s + cfg.batch, T))])
+                            for s in range(0, T, cfg.batch)])
+        ts = list(range(0, T, cfg.stride))
+        for s in range(0, len(ts), cfg.batch):
+            chunk = ts[s : s + cfg.batch]
+            out = policy.infer_batch([_obs_at(ep, t) for t in chunk])
+            u_act = action_uncertainty(out["continuous_normalized"], out["dequantized"])[:, :H]
+            for i, t in enumerate(chunk):
+                u_pred = np.full(H, np.nan)
+                u_pred[0] = 0.0
+                for k in range(1, H):
+                    if t + k < T:
+                        u_pred[k] = np.linalg.norm(z[t + k] - out["latents"][i, k - 1])
+                uas.append(u_act[i])
+                ups.append(u_pred)
+                us.append(cfg.eta * u_act[i] + (1 - cfg.eta) * u_pred)
+                vs.append(out["values"][i, :H])
+    if not us:
+        raise ValueError("no successful validation episodes to calibrate on")
+    return {"u": np.array(us), "u_act": np.array(uas), "u_pred": np.array(ups), "v": np.array(vs)}
+
+
+def thresholds(signals: dict[str, np.ndarray], cfg: CalibrationConfig, source: str = "") -> Calibration:
+    u = signals["u"][np.isfinite(signals["u"])]
+    v = signals["v"].ravel()
+    tau_low = float(np.percentile(u, cfg.tau_low_pct))
+    tau_high = float(np.percentile(u, cfg.tau_high_pct))
+    return Calibration(tau_low=tau_low, tau_high=max(tau_high, tau_low), v_thresh=float(np.percentile(v, cfg.v_pct)),
+                       eta=cfg.eta, source=source)
+
+
+def calibrate(policy: Policy, episodes: list[Episode], cfg: CalibrationConfig | None = None, source: str = "",
+              save: bool = True) -> tuple[Calibration, dict]:
+    """Compute thresholds, store them with the policy (``calibration.json``) and return them with stats."""
+    cfg = cfg or CalibrationConfig()
+    sig = calibration_signals(policy, episodes, cfg)
+    calib = thresholds(sig, cfg, source)
+    stats = {
+        "samples": int(len(sig["u"])),
+        "u_mean_by_step": np.nanmean(sig["u"], axis=0).round(5).tolist(),
+        "u_act_mean_by_step": np.nanmean(sig["u_act"], axis=0).round(5).tolist(),
+        "u_pred_mean_by_step": np.nanmean(sig["u_pred"], axis=0).round(5).tolist(),
+        "v_mean_by_step": sig["v"].mean(0).round(5).tolist(),
+        "percentiles": {"tau_low": cfg.tau_low_pct, "tau_high": cfg.tau_high_pct, "v_thresh": cfg.v_pct},
+    }
+    if save and policy.run_dir is not None:
+        atomic_write_json(policy.run_dir / CALIBRATION_FILE, vars(calib))
+        atomic_write_json(policy.run_dir / "calibration_stats.json", stats)
+    policy.calibration = calib
+    return calib, stats

@@ -1,0 +1,252 @@
+"""Executors turn a chunking policy into one action per control step. All share one interface:
+
+    executor.reset()                       # at the start of an episode
+    action = executor.act(policy, obs)     # physical 7-D action for this control step
+
+and all write a per-step ``trace`` (U_act, U_pred, U, V, the event, whether the step replanned) and a
+per-plan list ``plans`` of (executed horizon, event). ``aurd`` is PI-VLA's decider; ``fixed``,
+``ensemble`` (ACT temporal ensembling) and ``adahorizon`` (EverydayVLA) are the baselines.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pivla.control.math import action_uncertainty, adahorizon, prediction_uncertainty, step_event, temporal_ensemble
+
+GRIPPER = 6
+
+
+@dataclass
+class Plan:
+    """One policy query: normalized primary actions, physical actions, and AURD's signals."""
+
+    normalized: np.ndarray  # (K, D)
+    actions: np.ndarray  # (K, D) physical
+    u_act: np.ndarray  # (K,)
+    values: np.ndarray  # (H,)
+    latents: np.ndarray  # (K, d_z)
+
+    @classmethod
+    def from_output(cls, out: dict[str, np.ndarray]) -> "Plan":
+        return cls(
+            normalized=out["actions_normalized"],
+            actions=out["actions"],
+            u_act=action_uncertainty(out["continuous_normalized"], out["dequantized"]),
+            values=out["values"],
+            latents=out["latents"],
+        )
+
+
+@dataclass
+class BaseExecutor:
+    name: str = "base"
+    trace: list[dict] = field(default_factory=list)
+    plans: list[tuple[int, str]] = field(default_factory=list)
+    t: int = 0
+    last_gripper: float = -1.0
+
+    def reset(self) -> None:
+        self.trace, self.plans, self.t, self.last_gripper = [], [], 0, -1.0
+
+    def _emit(self, action: np.ndarray, **row: Any) -> np.ndarray:
+        action = np.asarray(action, np.float32)
+        self.last_gripper = float(action[GRIPPER])
+        self.trace.append({"t": self.t, **{k: _jsonable(v) for k, v in row.items()}})
+        self.t += 1
+        return action
+
+    def hold_action(self) -> np.ndarray:
+        """Hold pose for one control step: zero end-effector delta, gripper unchanged."""
+        a = np.zeros(7, np.float32)
+        a[GRIPPER] = self.last_gripper
+        return a
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    return v
+
+
+@dataclass
+class FixedExecutor(BaseExecutor):
+    """Execute the first ``horizon`` actions of every chunk open loop, then replan."""
+
+    name: str = "fixed"
+    horizon: int = 5
+    _plan: Plan | None = None
+    _k: int = 0
+
+    def reset(self) -> None:
+        super().reset()
+        self._plan, self._k = None, 0
+
+    def act(self, policy, obs: dict) -> np.ndarray:
+        replanned = self._plan is None or self._k >= min(self.horizon, len(self._plan.actions))
+        if replanned:
+            if self._plan is not None:
+                self.plans.append((self._k, "complete"))
+            self._plan, self._k = Plan.from_output(policy.infer(obs)), 0
+        k, p = self._k, self._plan
+        self._k += 1
+        return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k],
+                          v=p.values[min(k, len(p.values) - 1)], event=None)
+
+
+@dataclass
+class EnsembleExecutor(BaseExecutor):
+    """ACT temporal ensembling: query every step, average every live prediction for the current step
+    with weights exp(-m * i), oldest first (in normalized space; the gripper is thresholded after)."""
+
+    name: str = "ensemble"
+    m: float = 0.01
+    _history: deque = field(default_factory=deque)
+
+    def reset(self) -> None:
+        super().reset()
+        self._history = deque()
+
+    def act(self, policy, obs: dict) -> np.ndarray:
+        out = policy.infer(obs)
+        plan = Plan.from_output(out)
+        K = len(plan.normalized)
+        self._history.append((self.t, plan.normalized))
+        while self._history and self.t - self._history[0][0] >= K:
+            self._history.popleft()
+        preds = np.stack([chunk[self.t - t0] for t0, chunk in self._history])
+        action = policy.to_actions(temporal_ensemble(preds, self.m).astype(np.float32))
+        self.plans.append((1, "complete"))
+        return self._emit(action, plan_step=0, replanned=True, u_act=plan.u_act[0], v=plan.values[0],
+                          event=None, n_ensembled=len(preds))
+
+
+@dataclass
+class AdaHorizonExecutor(BaseExecutor):
+    """EverydayVLA's AdaHorizon: horizon chosen per chunk from the discrete/continuous disagreement."""
+
+    name: str = "adahorizon"
+    min_exec: int = 4
+    extend_below: float = 0.03
+    replan_above: float = 0.06
+    _plan: Plan | None = None
+    _k: int = 0
+    _h: int = 0
+
+    def reset(self) -> None:
+        super().reset()
+        self._plan, self._k, self._h = None, 0, 0
+
+    def act(self, policy, obs: dict) -> np.ndarray:
+        replanned = self._plan is None or self._k >= self._h
+        event = None
+        if replanned:
+            self._plan = Plan.from_output(policy.infer(obs))
+            self._h, event = adahorizon(self._plan.u_act, self.min_exec, self.extend_below, self.replan_above)
+            self._k = 0
+            self.plans.append((self._h, event))
+        k, p = self._k, self._plan
+        self._k += 1
+        return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k],
+                          v=p.values[min(k, len(p.values) - 1)], event=event, h_exec=self._h)
+
+
+@dataclass
+class AURDExecutor(BaseExecutor):
+    """PI-VLA's Active Uncertainty-Resolving Decider (Algorithm 1, METHOD.md "AURD").
+
+    Before executing plan step k (``check="before"``) it forms U = eta * U_act[k] + (1 - eta) * U_pred,
+    U_pred being the newest prediction error ||Enc(o_{t+k}) - z_hat_{t+k}|| (0 for k = 0), and
+    replans above tau_high, prunes in (tau_low, tau_high] when V[k] < V_thresh, and after a full nominal
+    horizon completes. A stop before the first action is a pause: hold pose one step, then replan; after
+    ``max_pauses`` pauses in a row the first action is executed anyway, so a static scene cannot stall the
+    robot forever. ``check="after"`` is the paper's literal order (execute, observe, then test).
+    Thresholds default to the policy's calibration (``pivla calibrate``).
+    """
+
+    name: str = "aurd"
+    tau_low: float | None = None
+    tau_high: float | None = None
+    v_thresh: float | None = None
+    eta: float | None = None
+    check: str = "before"
+    horizon: int | None = None
+    max_pauses: int = 3
+    _plan: Plan | None = None
+    _k: int = 0
+    _pauses: int = 0
+
+    def reset(self) -> None:
+        super().reset()
+        self._plan, self._k, self._pauses = None, 0, 0
+
+    def _thresholds(self, policy) -> tuple[float, float, float, float]:
+        c = policy.calibration
+        vals = [self.tau_low, self.tau_high, self.v_thresh]
+        if any(v is None for v in vals) and c is None:
+            raise ValueError(f"AURD needs thresholds: run `pivla calibrate --policy {policy.run_dir} --data VAL` "
+                             "or pass tau_low/tau_high/v_thresh")
+        tl = self.tau_low if self.tau_low is not None else c.tau_low
+        th = self.tau_high if self.tau_high is not None else c.tau_high
+        vt = self.v_thresh if self.v_thresh is not None else c.v_thresh
+        eta = self.eta if self.eta is not None else (c.eta if c is not None else 0.7)
+        return tl, th, vt, eta
+
+    def _end_plan(self, h: int, event: str) -> None:
+        self.plans.append((h, event))
+        self._plan, self._k = None, 0
+
+    def act(self, policy, obs: dict) -> np.ndarray:
+        tau_low, tau_high, v_thresh, eta = self._thresholds(policy)
+        H = self.horizon or policy.horizon
+        ended = None
+        z_obs = None
+        if self._plan is not None and self._k > 0:
+            z_obs = policy.encode(obs)
+        if self.check == "after" and self._plan is not None and self._k > 0:
+            k = self._k - 1  # the step just executed, now observed
+            u_pred = float(prediction_uncertainty(z_obs, self._plan.latents[k]))
+            u = eta * self._plan.u_act[k] + (1 - eta) * u_pred
+            event = step_event(u, float(self._plan.values[min(k, len(self._plan.values) - 1)]), tau_low, tau_high, v_thresh)
+            if event is not None:
+                ended = event
+                self._end_plan(self._k, event)
+        if self._plan is not None and self._k >= min(H, len(self._plan.actions)):
+            ended = "complete"
+            self._end_plan(self._k, "complete")
+        replanned = False
+        while True:
+            if self._plan is None:
+                self._plan, self._k, replanned, z_obs = Plan.from_output(policy.infer(obs)), 0, True, None
+            k, p = self._k, self._plan
+            u_pred = 0.0 if k == 0 or z_obs is None else float(prediction_uncertainty(z_obs, p.latents[k - 1]))
+            u = eta * float(p.u_act[k]) + (1 - eta) * u_pred
+            v = float(p.values[min(k, len(p.values) - 1)])
+            event = step_event(u, v, tau_low, tau_high, v_thresh) if self.check == "before" else None
+            if event is not None and k > 0:
+                ended = event
+                self._end_plan(k, event)
+                continue  # replan from the same observation
+            if event is not None and self._pauses < self.max_pauses:
+                self._pauses += 1
+                self._end_plan(0, "pause")
+                return self._emit(self.hold_action(), plan_step=0, replanned=replanned, u_act=p.u_act[0],
+                                  u_pred=u_pred, u=u, v=v, event="pause", ended=ended)
+            self._pauses = 0
+            self._k += 1
+            return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], u_pred=u_pred,
+                              u=u, v=v, event="forced" if event else None, ended=ended)
+
+
+EXECUTORS = {"aurd": AURDExecutor, "fixed": FixedExecutor, "ensemble": EnsembleExecutor, "adahorizon": AdaHorizonExecutor}
+
+
+def make_executor(name: str, **options: Any) -> BaseExecutor:
+    """An executor by name with optional overrides (e.g. ``horizon=5`` for fixed, ``check="after"``)."""
+    if name not in EXECUTORS:
+        raise ValueError(f"unknown executor {name!r}; choose from {sorted(EXECUTORS)}")
+    return EXECUTORS[name](**options)

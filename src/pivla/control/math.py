@@ -1,0 +1,115 @@
+"""The control math of PI-VLA and its baselines as pure functions (numpy in, numpy out).
+
+Indices: a plan is a chunk of K actions; ``u[k]`` and ``values[k]`` belong to step k+1 of the plan (the
+(k+1)-th action to execute). Actions are in the normalized space [-1, 1].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pivla.model.tokenizer import dequantize as _dequantize
+
+EVENTS = ("complete", "replan", "prune", "pause")
+
+
+def dequantize(probs: np.ndarray, bin_centers: np.ndarray) -> np.ndarray:
+    """Eq. 12: a_bar[k, d] = sum_b p[k, d, b] * c_b (expectation over the bin centres)."""
+    return _dequantize(probs, bin_centers)
+
+
+def action_uncertainty(continuous: np.ndarray, dequantized: np.ndarray) -> np.ndarray:
+    """Eq. 13's U_act: mean over action dimensions of |A_c - a_bar| (per chunk step for (K, D) inputs)."""
+    return np.abs(np.asarray(continuous, np.float64) - np.asarray(dequantized, np.float64)).mean(-1)
+
+
+def prediction_uncertainty(observed_latent: np.ndarray | None, predicted_latent: np.ndarray | None) -> np.ndarray | float:
+    """U_pred = || Enc(o_{t+k}) - z_hat_{t+k} ||_2; 0 when no observation is available yet."""
+    if observed_latent is None or predicted_latent is None:
+        return 0.0
+    diff = np.asarray(observed_latent, np.float64) - np.asarray(predicted_latent, np.float64)
+    return np.linalg.norm(diff, axis=-1)
+
+
+def composite_uncertainty(continuous: np.ndarray, dequantized: np.ndarray, observed_latent: np.ndarray | None,
+                          predicted_latent: np.ndarray | None, eta: float = 0.7) -> np.ndarray | float:
+    """Eqs. 13-14: U = eta * U_act + (1 - eta) * U_pred.
+
+    Works on one step ((D,) actions, (d_z,) latents) or a whole chunk ((K, D), (K, d_z)); latents may be
+    None (no observation yet), which means U_pred = 0.
+    """
+    u_act = action_uncertainty(continuous, dequantized)
+    u_pred = prediction_uncertainty(observed_latent, predicted_latent)
+    out = eta * u_act + (1.0 - eta) * np.asarray(u_pred)
+    return float(out) if np.ndim(out) == 0 else out
+
+
+def step_event(u: float, value: float, tau_low: float, tau_high: float, v_thresh: float) -> str | None:
+    """AURD's test of one plan step (Algorithm 1, lines 8-14): "replan" above tau_high, "prune" in the
+    band (tau_low, tau_high] when the value is low, else None (the step is trusted)."""
+    if u > tau_high:
+        return "replan"
+    if u > tau_low and value < v_thresh:
+        return "prune"
+    return None
+
+
+def decide_horizon(u: np.ndarray, values: np.ndarray, tau_low: float, tau_high: float, v_thresh: float,
+                   check: str = "before") -> tuple[int, str]:
+    """AURD's executed horizon for a plan whose uncertainties ``u`` and values are known for each step.
+
+    ``check="before"`` (default, METHOD.md): step k is tested before it is executed; a triggered test
+    stops the plan with H_exec = k ("replan" or "prune"), and H_exec = 0 becomes "pause" (hold pose one
+    control step, then replan). ``check="after"`` is the paper's literal order: execute step k, then test
+    it, so H_exec >= 1 and nothing is ever paused. All steps trusted: (len(u), "complete").
+    """
+    if check not in ("before", "after"):
+        raise ValueError(f"check must be 'before' or 'after', got {check!r}")
+    n = min(len(u), len(values))
+    for k in range(n):
+        event = step_event(float(u[k]), float(values[k]), tau_low, tau_high, v_thresh)
+        if event is None:
+            continue
+        if check == "after":
+            return k + 1, event
+        return (k, event) if k > 0 else (0, "pause")
+    return n, "complete"
+
+
+def ensemble_weights(n: int, m: float = 0.01) -> np.ndarray:
+    """ACT temporal ensembling weights w_i = exp(-m * i), i = 0 for the oldest prediction, normalised."""
+    w = np.exp(-m * np.arange(n))
+    return w / w.sum()
+
+
+def temporal_ensemble(predictions: np.ndarray, m: float = 0.01) -> np.ndarray:
+    """Weighted average of all predictions for the current step, ``predictions`` (n, D) oldest first."""
+    predictions = np.asarray(predictions, np.float64)
+    return (ensemble_weights(len(predictions), m)[:, None] * predictions).sum(0)
+
+
+def adahorizon(mad: np.ndarray, min_exec: int = 4, extend_below: float = 0.03, replan_above: float = 0.06) -> tuple[int, str]:
+    """EverydayVLA's AdaHorizon on MAD_k = mean_d |A_c[k] - a_bar[k]|.
+
+    Execute at least ``min_exec`` actions, but if any MAD among them exceeds ``replan_above`` replan at
+    that step (never fewer than one action); beyond ``min_exec`` keep extending while MAD < ``extend_below``.
+    """
+    mad = np.asarray(mad)
+    for k in range(min(min_exec, len(mad))):
+        if mad[k] > replan_above:
+            return max(k, 1), "replan"
+    h = min(min_exec, len(mad))
+    while h < len(mad) and mad[h] < extend_below:
+        h += 1
+    return h, "complete"
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """Wilson score interval for a binomial proportion (95% by default)."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))

@@ -1,0 +1,211 @@
+"""``pivla report DIR``: report.md with the paper's plots, from every evaluation found below DIR.
+
+An evaluation is a directory with ``results.json`` and ``episodes.jsonl`` (written by ``pivla eval``);
+its parent directory names the condition (e.g. ``eval/unseen_env/aurd``).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from pivla.control.math import wilson_interval
+from pivla.evaluation.runner import load_rows
+from pivla.training.checkpoint import atomic_write_bytes
+
+
+def newcombe_difference(s1: int, n1: int, s2: int, n2: int) -> tuple[float, float, float]:
+    """Difference p1 - p2 with Newcombe's hybrid-score 95% interval (from the two Wilson intervals)."""
+    p1, p2 = s1 / n1, s2 / n2
+    l1, u1 = wilson_interval(s1, n1)
+    l2, u2 = wilson_interval(s2, n2)
+    d = p1 - p2
+    return d, d - np.sqrt((p1 - l1) ** 2 + (u2 - p2) ** 2), d + np.sqrt((u1 - p1) ** 2 + (p2 - l2) ** 2)
+
+
+def find_evaluations(root: Path) -> dict[tuple[str, str], Path]:
+    """(condition, executor) -> evaluation directory."""
+    found = {}
+    for res in sorted(root.rglob("results.json")):
+        d = res.parent
+        found[(d.parent.name, json.loads(res.read_text())["executor"])] = d
+    return found
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    atomic_write_bytes(path, buf.getvalue())
+    _plt().close(fig)
+
+
+def _level(condition: str) -> int | None:
+    m = re.fullmatch(r"distraction_level_(\d+)", condition)
+    return int(m.group(1)) if m else None
+
+
+def plot_timeline(row: dict, calib: dict | None, path: Path) -> None:
+    """Paper Fig. 15: U, U_act, U_pred over one episode, thresholds, and where AURD replanned."""
+    plt = _plt()
+    tr = row["trace"]
+    t = np.array([r["t"] for r in tr])
+    fig, ax = plt.subplots(figsize=(8, 3.2))
+    ax.plot(t, [r.get("u", np.nan) for r in tr], label="U", color="k")
+    ax.plot(t, [r["u_act"] for r in tr], label="U_act", alpha=0.7)
+    ax.plot(t, [r.get("u_pred", np.nan) for r in tr], label="U_pred", alpha=0.7)
+    if calib:
+        ax.axhline(calib["tau_high"], color="r", ls="--", lw=1, label="tau_high")
+        ax.axhline(calib["tau_low"], color="orange", ls="--", lw=1, label="tau_low")
+    for r in tr:
+        ev = r.get("ended") or r.get("event")
+        if ev in ("replan", "prune", "pause"):
+            ax.axvline(r["t"], color={"replan": "r", "prune": "orange", "pause": "purple"}[ev], alpha=0.25)
+    ax.set_xlabel("control step")
+    ax.set_ylabel("uncertainty")
+    ax.set_title(f"{row['task']} episode {row['episode']} ({'success' if row['success'] else 'failure'})")
+    ax.legend(fontsize=7, ncol=5, loc="upper left")
+    _save(fig, path)
+
+
+def plot_horizons(evals: dict[str, list[dict]], path: Path) -> None:
+    """Paper Fig. 14 (right): distribution of executed horizons per executor."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    bins = np.arange(-0.5, 9.5, 1)
+    for name, rows in evals.items():
+        hs = [h for r in rows for h, e in r["plan_events"]]
+        if hs:
+            ax.hist(hs, bins=bins, alpha=0.5, label=name, density=True)
+    ax.set_xlabel("executed horizon (actions per plan; 0 = pause)")
+    ax.set_ylabel("fraction of plans")
+    ax.legend(fontsize=8)
+    _save(fig, path)
+
+
+def plot_u_by_step(rows: list[dict], path: Path) -> None:
+    """Paper Fig. 13: uncertainty against the step inside the plan."""
+    plt = _plt()
+    by: dict[int, list[tuple[float, float, float]]] = {}
+    for r in rows:
+        for s in r["trace"]:
+            if "u" in s:
+                by.setdefault(s["plan_step"], []).append((s["u"], s["u_act"], s["u_pred"]))
+    if not by:
+        return
+    ks = sorted(by)
+    arr = [np.array(by[k]) for k in ks]
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    for i, name in enumerate(("U", "U_act", "U_pred")):
+        ax.plot([k + 1 for k in ks], [a[:, i].mean() for a in arr], marker="o", label=name)
+    ax.set_xlabel("horizon step k")
+    ax.set_ylabel("mean uncertainty")
+    ax.legend(fontsize=8)
+    _save(fig, path)
+
+
+def plot_levels(levels: dict[str, dict[int, dict]], path: Path) -> None:
+    """Paper Fig. 8: success against distraction level, with 95% intervals."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    for name, by_level in levels.items():
+        ls = sorted(by_level)
+        p = np.array([by_level[lv]["success_rate"] for lv in ls])
+        lo = np.array([by_level[lv]["ci95"][0] for lv in ls])
+        hi = np.array([by_level[lv]["ci95"][1] for lv in ls])
+        ax.errorbar(ls, p, yerr=[p - lo, hi - p], marker="o", capsize=3, label=name)
+    ax.set_xlabel("distraction level (number of distractors)")
+    ax.set_ylabel("success rate")
+    ax.set_ylim(0, 1.05)
+    ax.legend(fontsize=8)
+    _save(fig, path)
+
+
+def write_report(root: str | Path) -> Path:
+    root = Path(root)
+    evals = find_evaluations(root)
+    if not evals:
+        raise SystemExit(f"{root}: no evaluations (results.json) found")
+    figs = root / "figures"
+    figs.mkdir(parents=True, exist_ok=True)
+    results = {k: json.loads((d / "results.json").read_text()) for k, d in evals.items()}
+    conditions = sorted({c for c, _ in evals if _level(c) is None})
+    executors = sorted({e for _, e in evals})
+    lines = ["# PI-VLA evaluation report", "", f"Source: `{root}`", ""]
+    lines += ["## Success rate (95% Wilson interval)", "", "| condition | " + " | ".join(executors) + " |",
+              "|---|" + "---|" * len(executors)]
+    for c in conditions:
+        cells = []
+        for e in executors:
+            r = results.get((c, e))
+            cells.append(f"{100 * r['success_rate']:.1f}% [{100 * r['ci95'][0]:.0f}, {100 * r['ci95'][1]:.0f}] (n={r['episodes']})"
+                         if r else "-")
+        lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    lines += ["", "## AURD minus fixed horizon (Newcombe 95% interval; same test seeds)", ""]
+    for c in conditions:
+        a, f = results.get((c, "aurd")), results.get((c, "fixed"))
+        if a and f:
+            d, lo, hi = newcombe_difference(a["successes"], a["episodes"], f["successes"], f["episodes"])
+            lines.append(f"- {c}: {100 * d:+.1f} points [{100 * lo:+.1f}, {100 * hi:+.1f}]")
+    lines += ["", "## Execution statistics", "", "| condition | executor | mean horizon | replans | prunes | pauses | plans | control Hz |",
+              "|---|---|---|---|---|---|---|---|"]
+    for (c, e), r in sorted(results.items()):
+        lines.append(f"| {c} | {e} | {r['mean_executed_horizon']:.2f} | {r['replans']} | {r['prunes']} | {r['pauses']} | "
+                     f"{r['plans']} | {r['control_hz']:.0f} |")
+    lines += ["", "## Failure prediction (AUROC of the episode's signals for predicting failure)", "",
+              "| condition | executor | AUROC max U | AUROC mean U | AUROC -min V | failures | flagged (U > tau_high) | mean lead (steps) |",
+              "|---|---|---|---|---|---|---|---|"]
+    fmt = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
+    for (c, e), r in sorted(results.items()):
+        fp = r.get("failure_prediction", {})
+        lines.append(f"| {c} | {e} | {fmt(fp.get('auroc_u_max'))} | {fmt(fp.get('auroc_u_mean'))} | {fmt(fp.get('auroc_neg_v_min'))} | "
+                     f"{fp.get('failures', '-')} | {fp.get('failures_flagged', '-')} | {fmt(fp.get('failure_lead_steps_mean'))} |")
+    # figures
+    main_cond = "in_distribution" if "in_distribution" in conditions else (conditions[0] if conditions else None)
+    if main_cond:
+        rows_by_exec = {e: load_rows(evals[(main_cond, e)] / "episodes.jsonl") for e in executors if (main_cond, e) in evals}
+        plot_horizons(rows_by_exec, figs / "executed_horizons.png")
+        lines += ["", f"## Executed horizons ({main_cond}, paper Fig. 14)", "", "![](figures/executed_horizons.png)"]
+        aurd_rows = [r for c in conditions if (c, "aurd") in evals for r in load_rows(evals[(c, "aurd")] / "episodes.jsonl")]
+        if aurd_rows:
+            plot_u_by_step(aurd_rows, figs / "uncertainty_by_step.png")
+            lines += ["", "## Uncertainty against horizon step (AURD, all conditions, paper Fig. 13)", "",
+                      "![](figures/uncertainty_by_step.png)"]
+            pick = next((r for r in aurd_rows if not r["success"]), aurd_rows[0])
+            calib = _calibration(results, root)
+            plot_timeline(pick, calib, figs / "uncertainty_timeline.png")
+            lines += ["", "## Uncertainty timeline of one AURD episode (paper Fig. 15)", "",
+                      "Vertical lines: replans (red), prunes (orange), pauses (purple).", "",
+                      "![](figures/uncertainty_timeline.png)"]
+    levels: dict[str, dict[int, dict]] = {}
+    for (c, e), r in results.items():
+        lv = _level(c)
+        if lv is not None:
+            levels.setdefault(e, {})[lv] = r
+    if levels:
+        plot_levels(levels, figs / "distraction_levels.png")
+        lines += ["", "## Success against distraction level (paper Fig. 8)", "", "![](figures/distraction_levels.png)"]
+    path = root / "report.md"
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
+    return path
+
+
+def _calibration(results: dict, root: Path) -> dict | None:
+    for r in results.values():
+        calib = Path(r["policy"]) / "calibration.json"
+        if calib.exists():
+            return json.loads(calib.read_text())
+    return None

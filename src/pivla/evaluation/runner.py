@@ -1,0 +1,265 @@
+"""Honest evaluation of a policy with an executor on a task suite.
+
+Episode seeds depend only on (seed, task index, episode index), never on the executor or the number of
+workers: every executor meets the same initial states (a paired comparison), and ``--workers 4`` gives
+the same results as ``--workers 1``. Each finished episode is appended to ``episodes.jsonl`` at once, so
+an interrupted evaluation resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pivla.control.math import wilson_interval
+from pivla.envs.rollout import episode_seed
+from pivla.training.checkpoint import atomic_write_json
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class EvalConfig:
+    policy: str
+    out: str
+    env: str = "tabletop"
+    suite: str = "pick_place"
+    tasks: str | None = None
+    executor: str = "aurd"
+    episodes: int = 10  # per task
+    seed: int = 1000
+    perturb: str | None = None
+    realism: str = "ideal"
+    workers: int = 1
+    videos: int = 2  # episodes with an MP4 (the first ones of the first tasks)
+    max_steps: int | None = None
+    executor_options: dict = field(default_factory=dict)
+    record: str | None = None  # directory to write every rollout (with success and rewards) as a dataset
+
+
+def job_seed(seed: int, task_index: int, episode: int) -> int:
+    return episode_seed(seed, task_index * 100_003 + episode)
+
+
+# -- worker side ------------------------------------------------------------------------------------------
+_STATE: dict[str, Any] = {}
+
+
+def _init_worker(cfg: EvalConfig, threads: int) -> None:
+    import torch
+
+    from pivla import load_policy
+
+    torch.set_num_threads(threads)
+    _STATE["policy"] = load_policy(cfg.policy, device="cpu" if not torch.cuda.is_available() else "auto")
+    _STATE["cfg"] = cfg
+    _STATE["envs"] = {}
+
+
+def _env(task_index: int) -> Any:
+    from pivla.envs import make_env
+
+    cfg, policy = _STATE["cfg"], _STATE["policy"]
+    if task_index not in _STATE["envs"]:
+        kw: dict[str, Any] = {"image_size": policy.cfg.image_size, "cameras": tuple(policy.cfg.cameras)}
+        if cfg.env == "tabletop":
+            kw.update(realism=cfg.realism, perturb=cfg.perturb)
+        _STATE["envs"][task_index] = make_env(cfg.env, cfg.suite, task_index, **kw)
+    return _STATE["envs"][task_index]
+
+
+def _run_job(job: tuple[int, str, int, bool]) -> dict:
+    from pivla.control import make_executor, run_episode
+
+    task_index, task_name, episode, keep_frames = job
+    cfg, policy = _STATE["cfg"], _STATE["policy"]
+    seed = job_seed(cfg.seed, task_index, episode)
+    t0 = time.perf_counter()
+    result = run_episode(_env(task_index), policy, make_executor(cfg.executor, **cfg.executor_options), seed=seed,
+                         max_steps=cfg.max_steps, keep_episode=keep_frames or cfg.record is not None)
+    row = {"task": task_name, "task_index": task_index, "episode": episode, **result.summary(),
+           "wall_s": time.perf_counter() - t0, "trace": result.trace, "plan_events": result.plans}
+    if result.episode is not None:
+        row["_episode"] = result.episode
+        row["_video"] = keep_frames
+    return row
+
+
+# -- aggregation ------------------------------------------------------------------------------------------
+def auroc(scores: np.ndarray, labels: np.ndarray) -> float | None:
+    """Area under the ROC curve of ``scores`` for positive ``labels`` (Mann-Whitney, ties count half)."""
+    scores, labels = np.asarray(scores, float), np.asarray(labels, bool)
+    pos, neg = scores[labels], scores[~labels]
+    if len(pos) == 0 or len(neg) == 0:
+        return None
+    greater = (pos[:, None] > neg[None, :]).sum() + 0.5 * (pos[:, None] == neg[None, :]).sum()
+    return float(greater / (len(pos) * len(neg)))
+
+
+def episode_uncertainty(trace: list[dict]) -> np.ndarray:
+    """Per-step U (AURD) or U_act (executors that do not encode observations)."""
+    return np.array([row["u"] if "u" in row else row["u_act"] for row in trace], float)
+
+
+def failure_prediction(rows: list[dict], tau_high: float | None) -> dict:
+    """How well the model's own signals predict that an episode fails (the paper claims it, never measures it)."""
+    if not rows:
+        return {}
+    failed = np.array([not r["success"] for r in rows])
+    u_max = np.array([episode_uncertainty(r["trace"]).max(initial=0.0) for r in rows])
+    u_mean = np.array([episode_uncertainty(r["trace"]).mean() if r["trace"] else 0.0 for r in rows])
+    v_min = np.array([min((row["v"] for row in r["trace"]), default=0.0) for r in rows])
+    out = {"auroc_u_max": auroc(u_max, failed), "auroc_u_mean": auroc(u_mean, failed), "auroc_neg_v_min": auroc(-v_min, failed)}
+    if tau_high is not None:
+        leads = []
+        for r in rows:
+            if r["success"]:
+                continue
+            u = episode_uncertainty(r["trace"])
+            above = np.flatnonzero(u > tau_high)
+            if len(above):
+                leads.append(r["steps"] - int(above[0]))
+        out["failure_lead_steps_mean"] = float(np.mean(leads)) if leads else None
+        out["failures_flagged"] = len(leads)
+        out["failures"] = int(failed.sum())
+    return out
+
+
+def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict:
+    n = len(rows)
+    succ = sum(r["success"] for r in rows)
+    per_task: dict[str, dict] = {}
+    for r in rows:
+        per_task.setdefault(r["task"], []).append(r["success"])  # type: ignore[arg-type]
+    per_task = {k: {"success_rate": float(np.mean(v)), "ci95": list(wilson_interval(int(np.sum(v)), len(v))), "episodes": len(v)}
+                for k, v in sorted(per_task.items())}
+    plans = [(h, e) for r in rows for h, e in r["plan_events"]]
+    horizons = [h for h, e in plans if e != "pause"]
+    steps = sum(r["steps"] for r in rows)
+    control_s = sum(r["control_ms_mean"] * r["steps"] for r in rows) / 1e3
+    return {
+        "success_rate": succ / n if n else 0.0,
+        "ci95": list(wilson_interval(succ, n)),
+        "successes": succ,
+        "episodes": n,
+        "per_task": per_task,
+        "executor": cfg.executor,
+        "executor_options": cfg.executor_options,
+        "env": cfg.env, "suite": cfg.suite, "perturb": cfg.perturb, "realism": cfg.realism, "seed": cfg.seed,
+        "policy": cfg.policy,
+        "mean_executed_horizon": float(np.mean(horizons)) if horizons else 0.0,
+        "replans": sum(e == "replan" for _, e in plans),
+        "prunes": sum(e == "prune" for _, e in plans),
+        "pauses": sum(e == "pause" for _, e in plans),
+        "plans": len(plans),
+        "control_hz": steps / control_s if control_s > 0 else 0.0,  # policy + decision time per control step
+        "steps": steps,
+        "mean_steps": steps / n if n else 0.0,
+        "sim_wall_s": float(sum(r["wall_s"] for r in rows)),
+        "failure_prediction": failure_prediction(rows, tau_high),
+    }
+
+
+# -- driver ----------------------------------------------------------------------------------------------
+def _key(row: dict) -> tuple[int, int]:
+    return int(row["task_index"]), int(row["episode"])
+
+
+def load_rows(path: Path) -> list[dict]:
+    rows = []
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if not line.strip():
+                continue
+            try:
+                rows.append(json.loads(line))
+            except json.JSONDecodeError:
+                log.warning("%s: skipping a truncated line (interrupted write)", path)
+    return rows
+
+
+def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
+    """Run (or resume) an evaluation; writes results.json, episodes.jsonl, traces/ and videos/ in ``cfg.out``."""
+    from tqdm import tqdm
+
+    from pivla import load_policy
+    from pivla.envs import select_tasks
+
+    out = Path(cfg.out)
+    (out / "traces").mkdir(parents=True, exist_ok=True)
+    tasks = select_tasks(cfg.env, cfg.suite, cfg.tasks)
+    policy = load_policy(cfg.policy, device="cpu")
+    if cfg.executor == "aurd" and policy.calibration is None and not {"tau_low", "tau_high", "v_thresh"} <= set(cfg.executor_options):
+        raise SystemExit(f"{cfg.policy}: not calibrated; run `pivla calibrate --policy {cfg.policy} --data VAL` first")
+    tau_high = cfg.executor_options.get("tau_high", policy.calibration.tau_high if policy.calibration else None)
+    del policy
+    atomic_write_json(out / "eval_config.json", asdict(cfg))
+    log_path = out / "episodes.jsonl"
+    done = {_key(r): r for r in load_rows(log_path)}
+    jobs = []
+    for ti, spec in enumerate(tasks):
+        for j in range(cfg.episodes):
+            if (spec.index, j) not in done:
+                jobs.append((spec.index, spec.name, j, ti * cfg.episodes + j < cfg.videos))
+    if done:
+        log.info("resuming: %d episodes already done, %d to go", len(done), len(jobs))
+    workers = max(1, min(cfg.workers, len(jobs)))
+    threads = max(1, (os.cpu_count() or 2) // workers)
+    bar = tqdm(total=len(jobs), desc=f"eval {cfg.executor}", unit="ep", disable=not progress, leave=False)
+    recorded = []
+    with open(log_path, "a") as logf:
+        def consume(row: dict) -> None:
+            ep, video = row.pop("_episode", None), row.pop("_video", False)
+            if ep is not None and video:
+                _write_video(out / "videos", row, ep)
+            if ep is not None and cfg.record:
+                recorded.append((row["task"], ep))
+            atomic_write_json(out / "traces" / f"{row['task']}_{row['episode']:03d}.json", row)
+            logf.write(json.dumps(row) + "\n")
+            logf.flush()
+            done[_key(row)] = row
+            bar.update(1)
+
+        if workers == 1:
+            _init_worker(cfg, threads)
+            for job in jobs:
+                consume(_run_job(job))
+        elif jobs:
+            with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(cfg, threads)) as pool:
+                for row in pool.imap_unordered(_run_job, jobs):
+                    consume(row)
+    bar.close()
+    if cfg.record and recorded:
+        _write_rollouts(Path(cfg.record), recorded)
+    rows = sorted(done.values(), key=_key)
+    results = aggregate(rows, cfg, tau_high)
+    atomic_write_json(out / "results.json", results)
+    return results
+
+
+def _write_video(folder: Path, row: dict, ep: Any) -> None:
+    from pivla.cli.collect import _write_mp4
+
+    folder.mkdir(parents=True, exist_ok=True)
+    views = [ep.obs[k] for k in ("agentview_rgb", "eye_in_hand_rgb") if k in ep.obs]
+    frames = np.concatenate(views, axis=2).repeat(2, axis=1).repeat(2, axis=2)
+    tag = "success" if row["success"] else "failure"
+    _write_mp4(folder / f"{row['task']}_{row['episode']:03d}_{tag}.mp4", frames, 10)
+
+
+def _write_rollouts(root: Path, recorded: list[tuple[str, Any]]) -> None:
+    from pivla.data.format import write_episodes
+
+    by_task: dict[str, list] = {}
+    for task, ep in recorded:
+        by_task.setdefault(task, []).append(ep)
+    for task, eps in by_task.items():
+        write_episodes(root / f"{task}_rollouts.hdf5", eps)

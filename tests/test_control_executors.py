@@ -1,0 +1,130 @@
+"""Executors against a scripted policy whose signals are known exactly."""
+
+import numpy as np
+import pytest
+
+from pivla.control import make_executor
+from pivla.policy import Calibration
+
+
+class ScriptedPolicy:
+    """Chunks whose k-th action is (plan id, k, ...); U_act, values and latents set per test."""
+
+    chunk, horizon = 8, 5
+
+    def __init__(self, u_act=None, values=None, latent_error=None, calibration=None):
+        self.u_act = np.zeros(8) if u_act is None else np.asarray(u_act, float)
+        self.values = np.ones(5) if values is None else np.asarray(values, float)
+        self.latent_error = latent_error or {}
+        self.calibration = calibration or Calibration(tau_low=0.2, tau_high=0.5, v_thresh=0.3, eta=0.7)
+        self.queries = 0
+        self.run_dir = None
+
+    def infer(self, obs):
+        self.queries += 1
+        a = np.zeros((8, 7), np.float32)
+        a[:, 0] = self.queries
+        a[:, 1] = np.arange(8)
+        a[:, 6] = 1.0
+        deq = a.copy()
+        deq[:, 2] = self.u_act * 7  # mean |cont - deq| over 7 dims = u_act
+        return {"actions": a, "actions_normalized": a / 10, "continuous_normalized": a, "dequantized": deq,
+                "values": self.values, "latents": np.zeros((8, 4)), "value_now": np.float32(1)}
+
+    def encode(self, obs):
+        z = np.zeros(4)
+        z[0] = self.latent_error.get(obs["t"], 0.0)
+        return z
+
+    def to_actions(self, normalized):
+        return normalized * 10
+
+
+def run(executor, policy, steps):
+    executor.reset()
+    return [executor.act(policy, {"t": t}) for t in range(steps)]
+
+
+def test_fixed_horizon_replans_every_h_steps():
+    p = ScriptedPolicy()
+    acts = run(make_executor("fixed", horizon=3), p, 7)
+    assert [a[0] for a in acts] == [1, 1, 1, 2, 2, 2, 3]
+    assert [a[1] for a in acts] == [0, 1, 2, 0, 1, 2, 0]
+
+
+def test_aurd_completes_nominal_horizon_when_certain():
+    p = ScriptedPolicy()
+    ex = make_executor("aurd")
+    acts = run(ex, p, 11)
+    assert [a[0] for a in acts] == [1] * 5 + [2] * 5 + [3]
+    assert ex.plans == [(5, "complete"), (5, "complete")]
+    assert all(r["u"] == 0 for r in ex.trace)
+
+
+def test_aurd_replans_when_prediction_error_exceeds_tau_high():
+    # observation at t=2 deviates from the prediction: U = 0.3 * 2.0 = 0.6 > tau_high before step 3
+    p = ScriptedPolicy(latent_error={2: 2.0})
+    ex = make_executor("aurd")
+    acts = run(ex, p, 4)
+    assert [a[0] for a in acts] == [1, 1, 2, 2]
+    assert ex.plans[0] == (2, "replan")
+    assert ex.trace[2]["replanned"] and ex.trace[2]["ended"] == "replan"
+    assert ex.trace[1]["u_pred"] == 0.0
+
+
+def test_aurd_prunes_in_band_with_low_value():
+    # U_act 0.4 at step 2 (0.7 * 0.4 = 0.28 in (0.2, 0.5]) and V[1] = 0.1 < 0.3
+    p = ScriptedPolicy(u_act=[0, 0.4, 0, 0, 0, 0, 0, 0], values=[1, 0.1, 1, 1, 1])
+    ex = make_executor("aurd", max_pauses=0)
+    run(ex, p, 2)
+    assert ex.plans[0] == (1, "prune")
+
+
+def test_aurd_pauses_then_acts_after_max_pauses():
+    p = ScriptedPolicy(u_act=[1.0] + [0] * 7)  # first action never trusted: 0.7 > tau_high
+    ex = make_executor("aurd", max_pauses=2)
+    acts = run(ex, p, 4)
+    assert np.allclose(acts[0][:6], 0) and acts[0][6] == -1.0  # hold pose, gripper as before (open)
+    assert np.allclose(acts[1][:6], 0)
+    assert acts[2][0] == 3 and ex.trace[2]["event"] == "forced"
+    assert [e for _, e in ex.plans[:2]] == ["pause", "pause"]
+
+
+def test_aurd_after_order_never_pauses():
+    p = ScriptedPolicy(u_act=[1.0] * 8)
+    ex = make_executor("aurd", check="after")
+    acts = run(ex, p, 3)
+    assert [a[0] for a in acts] == [1, 2, 3]
+    assert ex.plans == [(1, "replan"), (1, "replan")]
+
+
+def test_aurd_needs_thresholds():
+    p = ScriptedPolicy()
+    p.calibration = None
+    with pytest.raises(ValueError, match="calibrate"):
+        run(make_executor("aurd"), p, 1)
+
+
+def test_ensemble_averages_live_predictions():
+    p = ScriptedPolicy()
+    ex = make_executor("ensemble", m=0.01)
+    acts = run(ex, p, 3)
+    # at t=2 predictions from queries 1,2,3 for their steps 2,1,0: normalized (q/10, k/10) averaged, x10 back
+    w = np.exp(-0.01 * np.arange(3))
+    w /= w.sum()
+    np.testing.assert_allclose(acts[2][0], (w * np.array([1, 2, 3])).sum(), rtol=1e-5)
+    np.testing.assert_allclose(acts[2][1], (w * np.array([2, 1, 0])).sum(), rtol=1e-5)
+    assert ex.trace[2]["n_ensembled"] == 3
+
+
+def test_adahorizon_executor_follows_rule():
+    p = ScriptedPolicy(u_act=[0.01] * 6 + [0.05, 0.05])
+    ex = make_executor("adahorizon")
+    acts = run(ex, p, 7)
+    assert [a[0] for a in acts] == [1] * 6 + [2]
+    assert ex.plans[0] == (6, "complete")
+
+
+def test_unknown_executor():
+    with pytest.raises(ValueError, match="unknown executor"):
+        make_executor("magic")
