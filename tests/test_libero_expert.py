@@ -6,12 +6,10 @@ import pytest
 
 from pivla.envs.libero import _backend
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.skipif(not _backend.available(), reason=f"LIBERO not importable; {_backend.INSTALL_HINT}"),
-]
+pytestmark = pytest.mark.skipif(not _backend.available(), reason=f"LIBERO not importable; {_backend.INSTALL_HINT}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suite,task", [("libero_object", 0), ("libero_object", 7), ("libero_spatial", 0),
                                         ("libero_spatial", 6)])
 def test_expert_solves_task(suite, task):

@@ -32,6 +32,18 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, default=200)
     p.add_argument("--repeats", type=int, default=5)
     p.set_defaults(func=bench_control)
+    p = sub.add_parser("hf", help="CPU cost of the tiny random hf backbone stack (or a local checkpoint)")
+    p.add_argument("--path", default="", help="local Llava-style checkpoint (default: a tiny random one)")
+    p.add_argument("--target-path", default="", help="local DINOv2 checkpoint (default: a tiny random one)")
+    p.add_argument("--image-size", type=int, default=32)
+    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--repeats", type=int, default=30)
+    p.add_argument("--lora-rank", type=int, default=32)
+    p.set_defaults(func=bench_hf)
+    p = sub.add_parser("robot", help="serial round trips to the board (a simulated board when --port is absent)")
+    p.add_argument("--port", default=None)
+    p.add_argument("--n", type=int, default=200)
+    p.set_defaults(func=bench_robot)
     for p in sub.choices.values():
         p.add_argument("--json", action="store_true", help="print one JSON object")
         p.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
@@ -140,5 +152,17 @@ def bench_sim(args: argparse.Namespace) -> int:
 
 def bench_control(args: argparse.Namespace) -> int:
     from pivla.control.bench import run_bench
+
+    return emit(run_bench(args), args.json)
+
+
+def bench_hf(args: argparse.Namespace) -> int:
+    from pivla.model.hf import run_bench
+
+    return emit(run_bench(args), args.json)
+
+
+def bench_robot(args: argparse.Namespace) -> int:
+    from pivla.robot.bench import run_bench
 
     return emit(run_bench(args), args.json)

@@ -1,5 +1,5 @@
-"""``pivla collect``: scripted-expert demonstrations into a LIBERO-layout dataset (one HDF5 file per task);
-``pivla export-video``: MP4 previews of a dataset's episodes (PyAV, H.264)."""
+"""``pivla collect``: scripted-expert demonstrations into a LIBERO-layout dataset (one HDF5 file per task),
+on the simulated twin or on LIBERO itself; ``pivla export-video``: MP4 previews of a dataset's episodes."""
 
 from __future__ import annotations
 
@@ -12,22 +12,29 @@ from pathlib import Path
 
 log = logging.getLogger("pivla.collect")
 
+DEFAULT_IMAGE_SIZE = {"tabletop": 96, "libero": 128}
+
 
 def register(command: str, parser: argparse.ArgumentParser) -> None:
     if command == "collect":
-        parser.add_argument("--env", default="tabletop", choices=["tabletop"],
-                            help="environment family (the scripted expert needs the simulated twin)")
-        parser.add_argument("--suite", required=True, help="pick_place, pick_place_seen, pick_place_unseen, "
-                                                           "drawer, stack, long")
+        parser.add_argument("--env", default="tabletop", choices=["tabletop", "libero"],
+                            help="environment family: the simulated twin, or LIBERO (libero_spatial and "
+                                 "libero_object suites and their variants have scripted experts)")
+        parser.add_argument("--suite", required=True, help="tabletop: pick_place, pick_place_seen, "
+                                                           "pick_place_unseen, drawer, stack, long; "
+                                                           "libero: libero_spatial, libero_object, ...")
         parser.add_argument("--tasks", default=None, help="task indices or names, comma-separated (default: all)")
         parser.add_argument("--episodes", type=int, default=50, help="successful episodes per task")
         parser.add_argument("--out", required=True, help="output dataset directory")
-        parser.add_argument("--seed", type=int, default=0)
+        parser.add_argument("--seed", type=int, default=0,
+                            help="libero: episodes start from the official init states 0, 1, ... of each task "
+                                 "(failed attempts move on to the next); the seed drives the rest")
         parser.add_argument("--perturb", default=None, help="e.g. unseen_env,static_distractors,level=3 "
                                                             "(grammar: docs/twin.md)")
         parser.add_argument("--workers", type=int, default=1, help="worker processes (results do not depend on it)")
         parser.add_argument("--realism", default="ideal", choices=["ideal", "servo"])
-        parser.add_argument("--image-size", type=int, default=96)
+        parser.add_argument("--image-size", type=int, default=None, help="camera resolution (default: "
+                            f"{', '.join(f'{k} {v}' for k, v in DEFAULT_IMAGE_SIZE.items())})")
         parser.add_argument("--noise", type=float, default=0.0, help="expert action noise (std, action units)")
         parser.add_argument("--paraphrase", action="store_true", help="draw an instruction paraphrase per episode")
         parser.add_argument("--keep-failures", action="store_true",
@@ -60,8 +67,12 @@ def collect(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.episodes < 1:
         raise SystemExit("--episodes must be >= 1")
+    if args.image_size is None:
+        args.image_size = DEFAULT_IMAGE_SIZE[args.env]
     if args.policy:
         return collect_rollouts(args)
+    if args.env == "libero":
+        return collect_libero(args)
     try:
         perturb = parse_perturb(args.perturb)
         specs = select_tasks(args.env, args.suite, args.tasks)
@@ -123,7 +134,87 @@ def collect(args: argparse.Namespace) -> int:
     return status
 
 
-def collect_rollouts(args: argparse.Namespace) -> int:
+def collect_libero(args: argparse.Namespace) -> int:
+    """LIBERO demonstrations by the privileged-state scripted experts, one file per task.
+
+    Attempt ``k`` of a task starts from official init state ``k`` (modulo the task's 50), so the dataset does
+    not depend on ``--workers``, which spreads whole tasks over processes (each LIBERO process holds ~2 GB).
+    """
+    from pivla.data.format import write_episodes
+    from pivla.envs import select_tasks
+
+    unsupported = {"--perturb (use a LIBERO-PRO suite)": args.perturb, "--paraphrase (use a *_lan suite)":
+                   args.paraphrase, "--noise": args.noise, "--realism servo": args.realism != "ideal"}
+    given = [flag for flag, value in unsupported.items() if value]
+    if given:
+        raise SystemExit(f"pivla collect --env libero: not supported: {', '.join(given)}")
+    try:
+        specs = select_tasks("libero", args.suite, args.tasks)
+        from pivla.envs.libero import expert_actor
+
+        for spec in specs:
+            expert_actor(args.suite, spec.index)
+    except (ValueError, ImportError) as e:
+        raise SystemExit(f"pivla collect: {e}") from e
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(args.suite, spec.index, args.episodes, args.keep_failures, args.seed, args.image_size) for spec in specs]
+    if args.workers > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
+            results = pool.map(_collect_libero_task, jobs)
+    else:
+        results = [_collect_libero_task(job) for job in jobs]
+    status = 0
+    for spec, (episodes, attempts) in zip(specs, results):
+        n_success = sum(e.success for e in episodes)
+        if not episodes:
+            log.error("%s: the expert failed all %d attempts; nothing written", spec.name, attempts)
+            status = 1
+            continue
+        env_meta = {
+            "env": "libero", "suite": args.suite, "task": spec.name, "task_index": spec.index,
+            "instruction": spec.instruction, "max_steps": spec.max_steps, "image_size": args.image_size,
+            "control_hz": 20, "action": {"space": "OSC_POSE deltas", "translation_m_per_unit": 0.05,
+                                         "rotation_rad_per_unit": 0.5, "gripper": "-1 open, +1 closed"},
+            "seed": args.seed, "attempts": attempts, "expert": "scripted, privileged simulator state",
+            "init_states": [e.meta["init_state"] for e in episodes],
+        }
+        path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta)
+        log.info("%s: %d episodes (%d steps) -> %s; expert success %d/%d attempts", spec.name, len(episodes),
+                 sum(len(e) for e in episodes), path, n_success, attempts)
+        if not args.keep_failures and len(episodes) < args.episodes:
+            log.error("%s: only %d of %d successful episodes after %d attempts", spec.name, len(episodes),
+                      args.episodes, attempts)
+            status = 1
+    return status
+
+
+def _collect_libero_task(job: tuple[str, int, int, bool, int, int]) -> tuple[list, int]:
+    """(episodes kept, attempts) for one LIBERO task; runs in a worker process when ``--workers > 1``."""
+    from pivla.envs import make_env
+    from pivla.envs.libero.expert import RolloutExpert
+    from pivla.envs.rollout import episode_seed, run_episode
+
+    suite, task, wanted, keep_failures, seed, image_size = job
+    env = make_env("libero", suite, task, image_size=image_size, render=True, init_state=0)
+    actor = RolloutExpert(suite, task)
+    budget = wanted if keep_failures else 3 * wanted + 10
+    kept, attempts = [], 0
+    try:
+        while len(kept) < wanted and attempts < budget:
+            ep = run_episode(env, actor, episode_seed(episode_seed(seed, task), attempts))
+            ep.meta["init_state"] = env.init_state
+            attempts += 1
+            if ep.success or keep_failures:
+                kept.append(ep)
+            log.info("%s task %d init state %d: %s in %d steps", suite, task, env.init_state,
+                     "success" if ep.success else "failure", len(ep))
+    finally:
+        env.close()
+    return kept, attempts
+
     """Policy rollouts, every one kept with its success, through the evaluation runner (same seeds logic,
     workers, traces); the dataset goes to ``--out``, the evaluation record to ``--out/rollout_eval``."""
     from pivla.evaluation.runner import EvalConfig, evaluate
@@ -136,32 +227,11 @@ def collect_rollouts(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_mp4(path: Path, frames, fps: int) -> None:
-    """Encode (T, H, W, 3) uint8 frames as H.264 MP4, atomically."""
-    import av
-
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".mp4")
-    os.close(fd)
-    try:
-        with av.open(tmp, mode="w", format="mp4") as container:
-            stream = container.add_stream("libx264", rate=fps)
-            stream.height, stream.width = frames.shape[1], frames.shape[2]
-            stream.pix_fmt = "yuv420p"
-            for frame in frames:
-                container.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
-            container.mux(stream.encode())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def export_video(args: argparse.Namespace) -> int:
     import numpy as np
 
     from pivla.data.format import DatasetError, dataset_files, read_episodes
+    from pivla.io import write_mp4
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
@@ -181,7 +251,7 @@ def export_video(args: argparse.Namespace) -> int:
             frames = frames.repeat(args.scale, axis=1).repeat(args.scale, axis=2)
             frames = frames[:, : frames.shape[1] // 2 * 2, : frames.shape[2] // 2 * 2]
             target = out / f"{path.stem}_{i}.mp4"
-            _write_mp4(target, frames, args.fps)
+            write_mp4(target, frames, args.fps)
             written += 1
             log.info("%s (%s, %d steps, success=%s)", target, ep.instruction, len(ep), ep.success)
     log.info("wrote %d videos to %s", written, out)

@@ -28,7 +28,7 @@ class DemoConfig:
     train_episodes: int = 40  # per task
     val_episodes: int = 5  # per task, for calibration only
     test_episodes: int = 10  # per task and condition
-    steps: int = 2500
+    steps: int = 1800
     batch_size: int = 64
     noise: float = 0.1  # expert noise for diverse demonstrations
     conditions: tuple[str, ...] = ("in_distribution", "static_distractors", "unseen_env")

@@ -290,7 +290,7 @@ def cmd_run(args) -> int:
     results = []
     try:
         for ep in range(args.episodes):
-            results.append(run_episode(env, policy, make_executor(args.executor)).summary())
+            results.append(run_episode(env, policy, make_executor(args.executor), seed=args.seed + ep).summary())
             log.info("episode %d: %s", ep, results[-1])
     finally:
         robot.stop()

@@ -18,13 +18,13 @@ the file-level instruction and ``success=True``. See docs/dataset.md.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 import numpy as np
+
+from pivla.io import atomic_path
 
 IMAGE_KEYS = ("agentview_rgb", "eye_in_hand_rgb")
 LOW_DIM_KEYS = ("ee_pos", "ee_ori", "gripper_states", "joint_states")
@@ -72,19 +72,12 @@ class Episode:
         return len(self.actions)
 
 
-def _atomic_target(path: Path) -> tuple[int, str]:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-
-
 def write_episodes(path: str | Path, episodes: list[Episode], env_meta: dict | None = None) -> Path:
     """Write episodes to one HDF5 file atomically (temp file + rename), so a crash never leaves half a file."""
     path = Path(path)
     if not episodes:
         raise DatasetError(f"{path}: refusing to write a file with no episodes")
-    fd, tmp = _atomic_target(path)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             data = f.create_group("data")
             data.attrs["problem_info"] = json.dumps({"language_instruction": episodes[0].instruction})
@@ -111,12 +104,6 @@ def write_episodes(path: str | Path, episodes: list[Episode], env_meta: dict | N
                         obs.create_dataset(key, data=arr)
                 total += len(ep)
             data.attrs["total"] = total
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

@@ -59,7 +59,7 @@ def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None)
         dones[-1] = True
     unwrapped = env.unwrapped
     meta = {
-        "seed": int(seed),
+        "seed": None if seed is None else int(seed),
         "steps": len(actions),
         "return": float(np.sum(rewards)),
         "suite": getattr(unwrapped, "suite", None),

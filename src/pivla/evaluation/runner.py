@@ -246,13 +246,13 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
 
 
 def _write_video(folder: Path, row: dict, ep: Any) -> None:
-    from pivla.cli.collect import _write_mp4
+    from pivla.io import write_mp4
 
     folder.mkdir(parents=True, exist_ok=True)
     views = [ep.obs[k] for k in ("agentview_rgb", "eye_in_hand_rgb") if k in ep.obs]
     frames = np.concatenate(views, axis=2).repeat(2, axis=1).repeat(2, axis=2)
     tag = "success" if row["success"] else "failure"
-    _write_mp4(folder / f"{row['task']}_{row['episode']:03d}_{tag}.mp4", frames, 10)
+    write_mp4(folder / f"{row['task']}_{row['episode']:03d}_{tag}.mp4", frames, 10)
 
 
 def _write_rollouts(root: Path, recorded: list[tuple[str, Any]]) -> None:

@@ -60,10 +60,18 @@ def actor_loss(continuous: torch.Tensor, log_sigma: torch.Tensor, actions_taken:
 
     a_{t,k} are the actions actually taken in the data; a deterministic head would give log pi of its own
     output no gradient (METHOD.md). Advantages come normalised and detached from GAE.
+
+    With negative advantages this objective is unbounded below: the mean runs away from bad actions
+    quadratically, and sigma can collapse. So sigma stays in [SIGMA_MIN, SIGMA_MAX], advantages are clipped
+    to +-ADV_CLIP standard deviations, and the squared standardised residual is capped at RESIDUAL_CAP^2
+    (no gradient pushes the mean further than RESIDUAL_CAP sigmas from an action), in the spirit of PPO's
+    clipping.
     """
-    sigma = log_sigma.exp()
-    logp = (-0.5 * ((actions_taken - continuous.float()) / sigma) ** 2 - log_sigma - 0.5 * math.log(2 * math.pi)).sum(-1)
-    return -_masked_mean(logp * advantages.detach(), mask)
+    log_sigma = log_sigma.clamp(math.log(SIGMA_MIN), math.log(SIGMA_MAX))
+    advantages = advantages.detach().clamp(-ADV_CLIP, ADV_CLIP)
+    z2 = (((actions_taken - continuous.float()) / log_sigma.exp()) ** 2).clamp(max=RESIDUAL_CAP**2)
+    logp = (-0.5 * z2 - log_sigma - 0.5 * math.log(2 * math.pi)).sum(-1)
+    return -_masked_mean(logp * advantages, mask)
 
 
 def critic_loss(values: torch.Tensor, value_now: torch.Tensor, returns: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -151,11 +151,13 @@ class LiberoEnv(gym.Env):
         self._seed = seed
         self.task_index = _task_index(suite, task)
         self.spec_ = list_tasks(suite)[self.task_index]
+        self.task = self.spec_  # what pivla.envs.rollout reads (name, max_steps)
         self.config = config
         self.max_steps = config.max_steps or self.spec_.max_steps
         bench = _benchmark(suite)
         self.init_states = np.asarray(bench.get_task_init_states(self.task_index))
         self._next_init = 0 if init_state is None else int(init_state)
+        self.init_state: int | None = None  # the official init state of the current episode
         lib = libero()
         cams = [CAMERAS[c] for c in config.cameras] if config.render else []
         self._env = lib.ControlEnv(
@@ -225,7 +227,9 @@ class LiberoEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, Any], dict]:
         """Start from an official init state: ``options["init_state"]`` (taken modulo 50), else the next one.
 
-        The scene is deterministic given the init state, so ``seed`` only seeds ``self.np_random``.
+        The init state fixes every movable object; LIBERO's reset also re-samples fixture placements in
+        their BDDL regions from NumPy's global generator, which is seeded here from
+        ``self.np_random`` (and restored afterwards), so a seeded reset is reproducible.
         """
         if seed is None and self._seed is not None:
             seed, self._seed = self._seed, None
@@ -233,7 +237,13 @@ class LiberoEnv(gym.Env):
         options = options or {}
         idx = int(options.get("init_state", self._next_init)) % len(self.init_states)
         self._next_init = idx + 1
-        self._env.reset()
+        self.init_state = idx
+        global_state = np.random.get_state()
+        np.random.seed(int(self.np_random.integers(2**32)))
+        try:
+            self._env.reset()
+        finally:
+            np.random.set_state(global_state)
         self._configure_renderer()
         self._set_cameras(False)
         raw = self._env.set_init_state(self.init_states[idx])

@@ -46,6 +46,7 @@ class ExpertConfig:
     rot_gain: float = 1.0
     max_pos_action: float = 1.0
     pos_tol: float = 0.008  # waypoint reached (m)
+    transfer_tol: float = 0.02  # the transfer above the target may end this far off: placing corrects it
     ori_tol: float = 0.08  # orientation reached (rad)
     approach_above: float = 0.07  # pre-grasp height above the grasp point (m)
     rim_depth: float = 0.012  # fingertips below the rim top for a rim grasp (m)
@@ -56,6 +57,13 @@ class ExpertConfig:
     drop_above: float = 0.01  # object bottom above the container's rim at release, "in" goals (m)
     travel_clearance: float = 0.07  # eef above the highest body on the way to the pre-grasp (m)
     max_attempts: int = 3  # grasps retried when the object did not come up
+    retry_distance: float = 0.03  # a retried rim grasp keeps this far (m) from the failed ones
+    stall_steps: int = 8  # descending this many steps without getting 1 mm closer: blocked, grasp elsewhere
+    max_replans: int = 3  # grasp re-plans above the object before going down anyway
+    replan_shift: float = 0.01  # a re-planned grasp this far (m) from the old one is travelled to first
+    replan_turn: float = 0.1  # ... or turned this much (rad) from the old yaw
+    rest_speed: float = 0.02  # object at rest: linear speed below this (m/s) ...
+    rest_spin: float = 0.2  # ... and angular speed below this (rad/s)
     close_steps: int = 12
     open_steps: int = 8
     waypoint_timeout: int = 60  # steps before a waypoint is abandoned and the next one starts
@@ -155,6 +163,18 @@ def _rotation_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
     return axis / norm * angle
 
 
+def _levelling(rot: np.ndarray) -> np.ndarray:
+    """The smallest rotation that turns a body with orientation ``rot`` back upright (its z axis up)."""
+    z = rot[:, 2]
+    axis = np.cross(z, [0.0, 0.0, 1.0])
+    s, c = float(np.linalg.norm(axis)), float(z[2])
+    if s < 1e-9:
+        return np.eye(3)
+    k = axis / s
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * kx + (1 - c) * kx @ kx
+
+
 @dataclass
 class _Plan:
     grasp: np.ndarray  # eef position at the grasp
@@ -188,6 +208,7 @@ class PickPlaceExpert:
             raise ValueError(f"goal target {target_name!r} is not an object or fixture of the scene")
         self.target = self.scene.root(target.root_body)
         self.into = goal[0][0].lower() == "in"
+        self.failed: list[np.ndarray] = []  # xy of grasps that did not lift the object, this episode
         self._episode = env.episode_id
 
     # ---- planning -------------------------------------------------------------------------------------
@@ -248,8 +269,11 @@ class PickPlaceExpert:
             yaw = _closing_yaw(radial)
             margin = tip_z - under  # room under the fingers: prefer grasps away from walls and neighbours
             score = min(depth, cfg.rim_depth) + 0.5 * min(margin, 0.03) - 0.004 * abs(yaw)
+            grasp = np.array([*rim_xy, tip_z + TIP_BELOW_EEF])
+            if any(np.linalg.norm(grasp[:2] - f) < cfg.retry_distance for f in self.failed):
+                score -= 0.5
             if best is None or score > best[0]:
-                best = (score, yaw, np.array([*rim_xy, tip_z + TIP_BELOW_EEF]))
+                best = (score, yaw, grasp)
         if best is None:
             raise RuntimeError("no rim point of the bowl is visible from above")
         _, yaw, grasp = best
@@ -283,17 +307,31 @@ class PickPlaceExpert:
         above = self.plan.grasp[2] + self.config.approach_above
         self.travel_z = max(above, self._clear_height(ee[:2], self.plan.grasp[:2], -1) + self.config.travel_clearance)
         self.obj_bottom0 = self.scene.aabb(self.obj)[0][2]
+        self.replans = 0
+        self.closest, self.stall = np.inf, 0  # progress of the descent
         self.phase = 0
         self.phase_steps = 0
 
     def _place_xy(self) -> np.ndarray:
+        """Where the held object's reference point goes: LIBERO's On test compares body origins (within
+        3 cm), so the target's origin for "on" goals; the container's centre for "in" goals."""
+        if not self.into:
+            return self.scene.d.xpos[self.target][:2].copy()
         t_lo, t_hi = self.scene.aabb(self.target)
         return (t_lo[:2] + t_hi[:2]) / 2
 
     def _held_offset(self, ee: np.ndarray) -> np.ndarray:
-        """Where the object's bottom centre is relative to the eef (the object may have shifted in the hand)."""
-        lo, hi = self.scene.aabb(self.obj)
-        return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]) - ee
+        """The held object's reference point (xy) and bottom (z) relative to the eef; the object may have
+        shifted or tilted in the hand. For "on" goals the reference point is where the object's origin
+        will be once it has tipped upright about its lowest point after release."""
+        sc = self.scene
+        pts = sc.corners(sc.geoms(self.obj))
+        lowest = pts[int(np.argmin(pts[:, 2]))]
+        if self.into:
+            ref = (pts[:, :2].min(0) + pts[:, :2].max(0)) / 2
+        else:
+            ref = (lowest + _levelling(sc.d.xmat[self.obj].reshape(3, 3)) @ (sc.d.xpos[self.obj] - lowest))[:2]
+        return np.array([*ref, lowest[2]]) - ee
 
     def __call__(self, env: Any, obs: dict | None = None) -> np.ndarray:
         raw = env.raw_obs
@@ -310,11 +348,12 @@ class PickPlaceExpert:
             goal, grip, done = self._goal(self.PHASES[self.phase], ee, float(np.linalg.norm(ori_err)))
             if not done:
                 break
-            if self.PHASES[self.phase] == "travel":
-                # Objects may still be settling when the episode starts (a bowl sinking onto a ramekin):
-                # plan the grasp again from where the object is now, just before going down.
-                self.plan = self._plan_grasp()
-            if self.PHASES[self.phase] == "lift" and not self._lifted() and self.attempts < cfg.max_attempts:
+            if self.PHASES[self.phase] == "travel" and self._replan():
+                continue
+            failed = (self.PHASES[self.phase] == "lift" and not self._lifted()) or (
+                self.PHASES[self.phase] == "descend" and self.stall >= cfg.stall_steps)
+            if failed and self.attempts < cfg.max_attempts:
+                self.failed.append(self.plan.grasp[:2].copy())
                 self.attempts += 1
                 self._start_attempt(ee)
                 continue
@@ -326,6 +365,23 @@ class PickPlaceExpert:
         pos_a = np.clip(cfg.pos_gain * (goal - ee) / POS_SCALE, -cfg.max_pos_action, cfg.max_pos_action)
         rot_a = np.clip(cfg.rot_gain * ori_err / ROT_SCALE, -1.0, 1.0)
         return np.array([*pos_a, *rot_a, grip], dtype=np.float64)
+
+    def _replan(self) -> bool:
+        """Plan the grasp again just before going down (objects may still be settling when the episode
+        starts, e.g. a bowl sliding off a ramekin); True when the new grasp must be travelled to first, so
+        that the gripper turns above the object rather than next to it."""
+        old, self.plan = self.plan, self._plan_grasp()
+        turn = abs((self.plan.yaw - old.yaw + np.pi / 2) % np.pi - np.pi / 2)
+        shift = float(np.linalg.norm(self.plan.grasp[:2] - old.grasp[:2]))
+        if (shift > self.config.replan_shift or turn > self.config.replan_turn) and self.replans < self.config.max_replans:
+            self.replans += 1
+            self.phase_steps = 0
+            return True
+        return False
+
+    def _at_rest(self) -> bool:
+        vel = self.scene.d.cvel[self.obj]
+        return bool(np.linalg.norm(vel[3:]) < self.config.rest_speed and np.linalg.norm(vel[:3]) < self.config.rest_spin)
 
     def _lifted(self) -> bool:
         return self.scene.aabb(self.obj)[0][2] > self.obj_bottom0 + 0.02
@@ -339,8 +395,17 @@ class PickPlaceExpert:
             if ee[2] < self.travel_z - 0.02 and np.linalg.norm(ee[:2] - p.grasp[:2]) > 0.02:
                 return np.array([ee[0], ee[1], self.travel_z]), -1.0, False
             goal, grip, need_ori = np.array([*p.grasp[:2], self.travel_z]), -1.0, True
+            if not self._at_rest() and not timed_out:
+                return goal, grip, False
         elif phase == "descend":
             goal, grip, need_ori = p.grasp, -1.0, True
+            dist = float(np.linalg.norm(goal - ee))
+            if dist < self.closest - 0.001 or dist < cfg.pos_tol:
+                self.closest, self.stall = min(dist, self.closest), 0
+            else:
+                self.stall += 1
+            if self.stall >= cfg.stall_steps:
+                return goal, grip, True
         elif phase in ("close", "open"):
             steps, grip = (cfg.close_steps, 1.0) if phase == "close" else (cfg.open_steps, -1.0)
             return None, grip, self.phase_steps >= steps
@@ -358,7 +423,8 @@ class PickPlaceExpert:
             return np.array([ee[0], ee[1], p.lift_z]), -1.0, False
         else:
             return None, -1.0, False
-        reached = np.linalg.norm(goal - ee) < cfg.pos_tol and (oriented or not need_ori)
+        tol = cfg.transfer_tol if phase == "transfer" else cfg.pos_tol
+        reached = np.linalg.norm(goal - ee) < tol and (oriented or not need_ori)
         return goal, grip, reached or timed_out
 
 
@@ -380,9 +446,28 @@ def expert_actor(suite: str, task: int | str) -> Callable[[Any, dict | None], np
     return PickPlaceExpert()
 
 
+class RolloutExpert:
+    """A task's expert behind ``pivla.envs.rollout``'s ``actor(obs)`` interface: ``reset(env, seed)``, called
+    after every ``env.reset``, binds the env whose privileged state the expert reads."""
+
+    source = "expert"
+
+    def __init__(self, suite: str, task: int | str) -> None:
+        self.expert = expert_actor(suite, task)
+        self.env: Any = None
+
+    def reset(self, env: Any, seed: int) -> None:
+        self.env = env
+
+    def __call__(self, obs: dict) -> np.ndarray:
+        if self.env is None:
+            raise RuntimeError("RolloutExpert: call reset(env, seed) after env.reset() first")
+        return self.expert(self.env, obs)
+
+
 def run_expert_episode(env: Any, actor: Callable[[Any, dict | None], np.ndarray], init_state: int) -> dict:
     """Roll out the expert from one official init state; returns success, steps and grasp attempts."""
-    obs, info = env.reset(options={"init_state": init_state})
+    obs, info = env.reset(seed=init_state, options={"init_state": init_state})
     success, steps = bool(info["success"]), 0
     while not success:
         obs, _, terminated, truncated, info = env.step(actor(env, obs))

@@ -1,0 +1,18 @@
+"""The benchmark commands run and report their keys (their numbers are measured, never asserted)."""
+
+import json
+
+from pivla.cli import main
+
+
+def test_bench_infer_json(capsys):
+    assert main(["bench", "infer", "--runs", "3", "--warmup", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {"forward_ms_median", "hz", "threads"} <= set(out) and out["forward_ms_median"] > 0
+
+
+def test_bench_control_json(capsys):
+    assert main(["bench", "control", "--steps", "6", "--repeats", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {"fixed_ms_per_step", "aurd_ms_per_step", "aurd_overhead_pct"} <= set(out)
+    assert out["policy_queries"]["aurd"] == out["policy_queries"]["fixed"]  # same plans: the gap is pure overhead
