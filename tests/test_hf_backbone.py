@@ -46,7 +46,7 @@ def test_forward_backward_and_only_adapters_and_heads_train(dirs):
     out = model(make_batch(text))
     assert out.logits.shape == (2, 8, 7, 256) and out.continuous.shape == (2, 8, 7)
     assert out.h_cog.shape == (2, 2, 64) and out.h_mot.shape == (2, 8, 64)
-    assert out.latents.shape == (2, 8, model.latent_dim) and model.latent_dim == 2 * 32  # CLS per camera
+    assert out.latents.shape == (2, 8, model.latent_dim) and model.latent_dim == 32  # CLS of the agent view
     (out.continuous.square().mean() + out.logits.logsumexp(-1).mean() + out.values.mean()).backward()
     trainable = {n for n, p in model.named_parameters() if p.requires_grad}
     base = [n for n in trainable if n.startswith("backbone.vlm.") and "lora_" not in n]
@@ -116,13 +116,13 @@ def test_gradient_checkpointing_gives_the_same_gradients(dirs):
 def test_ema_target_uses_the_frozen_vision_tower(dirs):
     text = HFTextTokenizer.from_pretrained(str(dirs["vlm"]), 24)
     model = CMSModel(model_cfg(dirs, target="frozen"), len(text.vocab))
-    assert model.latent_dim == 2 * 32  # SigLIP hidden 32 per camera
+    assert model.latent_dim == 32  # SigLIP hidden 32, agent-view camera (target_encoder.cameras = 1)
     tower = model.backbone.parts.tower
     copy = model.target.encoder.tower
     assert copy is not tower and all(not p.requires_grad for p in copy.parameters())
     assert all(k.startswith("target.encoder.") or k.startswith("backbone.vlm.") for k in model.external_state_keys())
     z = model.target(make_batch(text)["images"])
-    assert z.shape == (2, 64) and torch.isfinite(z).all()
+    assert z.shape == (2, 32) and torch.isfinite(z).all()
 
 
 def test_tokenizer_round_trip_is_self_contained(dirs, tmp_path):

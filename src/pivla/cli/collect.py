@@ -215,6 +215,8 @@ def _collect_libero_task(job: tuple[str, int, int, bool, int, int]) -> tuple[lis
         env.close()
     return kept, attempts
 
+
+def collect_rollouts(args: argparse.Namespace) -> int:
     """Policy rollouts, every one kept with its success, through the evaluation runner (same seeds logic,
     workers, traces); the dataset goes to ``--out``, the evaluation record to ``--out/rollout_eval``."""
     from pivla.evaluation.runner import EvalConfig, evaluate

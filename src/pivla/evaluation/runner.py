@@ -54,14 +54,19 @@ _STATE: dict[str, Any] = {}
 
 
 def _init_worker(cfg: EvalConfig, threads: int) -> None:
+    """Load the policy once per worker. A failure is kept and raised by the first job: an exception in a
+    Pool initializer would make the pool respawn workers forever instead of reporting it."""
     import torch
 
     from pivla import load_policy
 
     torch.set_num_threads(threads)
-    _STATE["policy"] = load_policy(cfg.policy, device="cpu" if not torch.cuda.is_available() else "auto")
     _STATE["cfg"] = cfg
     _STATE["envs"] = {}
+    try:
+        _STATE["policy"] = load_policy(cfg.policy, device="cpu" if not torch.cuda.is_available() else "auto")
+    except Exception as e:  # noqa: BLE001 - re-raised with context in _run_job
+        _STATE["error"] = f"{type(e).__name__}: {e}"
 
 
 def _env(task_index: int) -> Any:
@@ -79,6 +84,8 @@ def _env(task_index: int) -> Any:
 def _run_job(job: tuple[int, str, int, bool]) -> dict:
     from pivla.control import make_executor, run_episode
 
+    if "error" in _STATE:
+        raise RuntimeError(f"evaluation worker could not load the policy: {_STATE['error']}")
     task_index, task_name, episode, keep_frames = job
     cfg, policy = _STATE["cfg"], _STATE["policy"]
     seed = job_seed(cfg.seed, task_index, episode)

@@ -209,7 +209,10 @@ class CMSModel(nn.Module):
 
     def load_checkpoint_state(self, state: dict[str, torch.Tensor], source: str = "checkpoint") -> None:
         """Inverse of ``state_dict_for_checkpoint``: every other key must match exactly."""
-        missing, unexpected = self.load_state_dict(state, strict=False)
+        try:
+            missing, unexpected = self.load_state_dict(state, strict=False)
+        except RuntimeError as e:  # shape mismatches: a checkpoint from another config or version
+            raise ValueError(f"{source}: does not match the model built from config.json ({e})") from None
         external = self.external_state_keys()
         missing = [k for k in missing if k not in external]
         if missing or unexpected:
