@@ -2,7 +2,7 @@ import h5py
 import numpy as np
 import pytest
 
-from pivla.data.dataset import ChunkDataset, gae, prepare_episode, split_episodes
+from pivla.data.dataset import ChunkDataset, fit_norm_stats, gae, prepare_episode, split_episodes
 from pivla.data.format import DatasetError, Episode, read_dataset, read_episodes, write_episodes
 from pivla.data.normalize import ActionStats
 from pivla.data.synthetic import synthetic_episode
@@ -90,7 +90,7 @@ def test_split_is_episode_level_and_stratified():
 def test_chunk_targets_padding_mask_and_next_obs():
     cfg = ModelConfig(image_size=16, chunk=8, horizon=5)
     ep = _episode(T=10)
-    stats = __import__("pivla.data.dataset", fromlist=["fit_norm_stats"]).fit_norm_stats([ep], cfg)
+    stats = fit_norm_stats([ep], cfg)
     ds = ChunkDataset([prepare_episode(ep, cfg, stats, WordTokenizer.build([ep.instruction]))], cfg, sp_steps=2)
     rng = np.random.default_rng(0)
     s = ds.sample(6, rng)  # t = 6: steps 6..13, only 6..9 exist

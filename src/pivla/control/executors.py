@@ -31,6 +31,10 @@ class Plan:
     values: np.ndarray  # (H,)
     latents: np.ndarray  # (K, d_z)
 
+    def value(self, k: int) -> float:
+        """V for plan step k (0-based); steps past the value horizon reuse its last entry."""
+        return float(self.values[min(k, len(self.values) - 1)])
+
     @classmethod
     def from_output(cls, out: dict[str, np.ndarray]) -> "Plan":
         return cls(
@@ -95,7 +99,7 @@ class FixedExecutor(BaseExecutor):
         k, p = self._k, self._plan
         self._k += 1
         return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k],
-                          v=p.values[min(k, len(p.values) - 1)], event=None)
+                          v=p.value(k), event=None)
 
 
 @dataclass
@@ -152,7 +156,7 @@ class AdaHorizonExecutor(BaseExecutor):
         k, p = self._k, self._plan
         self._k += 1
         return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k],
-                          v=p.values[min(k, len(p.values) - 1)], event=event, h_exec=self._h)
+                          v=p.value(k), event=event, h_exec=self._h)
 
 
 @dataclass
@@ -211,7 +215,7 @@ class AURDExecutor(BaseExecutor):
             k = self._k - 1  # the step just executed, now observed
             u_pred = float(prediction_uncertainty(z_obs, self._plan.latents[k]))
             u = eta * self._plan.u_act[k] + (1 - eta) * u_pred
-            event = step_event(u, float(self._plan.values[min(k, len(self._plan.values) - 1)]), tau_low, tau_high, v_thresh)
+            event = step_event(u, self._plan.value(k), tau_low, tau_high, v_thresh)
             if event is not None:
                 ended = event
                 self._end_plan(self._k, event)
@@ -225,7 +229,7 @@ class AURDExecutor(BaseExecutor):
             k, p = self._k, self._plan
             u_pred = 0.0 if k == 0 or z_obs is None else float(prediction_uncertainty(z_obs, p.latents[k - 1]))
             u = eta * float(p.u_act[k]) + (1 - eta) * u_pred
-            v = float(p.values[min(k, len(p.values) - 1)])
+            v = p.value(k)
             event = step_event(u, v, tau_low, tau_high, v_thresh) if self.check == "before" else None
             if event is not None and k > 0:
                 ended = event

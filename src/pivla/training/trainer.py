@@ -122,6 +122,7 @@ class Trainer:
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: lr_lambda(s, cfg))
         self.step = 0
         self.history: list[dict] = []
+        self._values: list[np.ndarray] = []  # V(s_t) table behind the current GAE advantages
         self.started = time.time()
         if resume:
             self._resume()
@@ -153,10 +154,9 @@ class Trainer:
             "scheduler": self.scheduler.state_dict(),
             "torch_rng": torch.get_rng_state().tolist(),
             "history": self.history[-200:],
-            "values": [v.tolist() for v in self._values] if getattr(self, "_values", None) else [],
         }
-        if not train_state["values"]:
-            train_state.pop("values")
+        if self._values:
+            train_state["values"] = [v.tolist() for v in self._values]
         ck.save_checkpoint(self.run_dir, self.step, state, self.optimizer.state_dict(), train_state, self.cfg.keep_checkpoints)
         self.write_run_files(state)
         self._write_status(done=final)
