@@ -143,3 +143,22 @@ def test_render_false_has_no_images():
         assert obs["ee_pos"].shape == (3,) and "basket" in obs["instruction"]
     finally:
         env.close()
+
+
+@requires_libero
+def test_tiny_policy_evaluates_on_libero_from_given_init_states(synthetic_data, tmp_path):
+    """The CI smoke test of the issue: one task, short episodes, a tiny policy, the same runner and
+    results.json as the twin; episode e starts from official init state first_init_state + e."""
+    import json
+
+    from pivla.evaluation.runner import EvalConfig, evaluate
+    from pivla.training.trainer import train
+    from tests.conftest import tiny_train_config
+
+    run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=4, val_fraction=0.0))
+    cfg = EvalConfig(policy=str(run), out=str(tmp_path / "eval"), env="libero", suite="libero_spatial", tasks="0",
+                     executor="fixed", episodes=2, max_steps=3, videos=0, first_init_state=40)
+    res = evaluate(cfg, progress=False)
+    assert res["episodes"] == 2 and res["executor"] == "fixed" and 0 <= res["ci95"][0] <= res["ci95"][1] <= 1
+    rows = [json.loads(line) for line in (tmp_path / "eval" / "episodes.jsonl").read_text().splitlines()]
+    assert sorted(r["init_state"] for r in rows) == [40, 41] and all(r["steps"] == 3 for r in rows)

@@ -32,7 +32,27 @@ def test_expert_success_rate_50_episodes(suite, realism):
 def test_noise_makes_diverse_but_successful_demos():
     factory = lambda: make_env("pick_place", "block_right", render=False)  # noqa: E731
     clean = collect_episodes(factory, make_expert(0.0), 4, seed=5)
-    noisy = collect_episodes(factory, make_expert(0.2), 4, seed=5)
+    noisy = collect_episodes(factory, make_expert(0.3), 4, seed=5)
     assert sum(e.success for e in noisy) >= 3
     assert not np.allclose(clean[0].actions[:5], noisy[0].actions[:5])
     assert all(np.abs(e.actions).max() <= 1.0 for e in noisy)
+
+
+def test_noise_perturbs_execution_but_records_clean_labels():
+    """DART: the env receives the noisy action, the dataset gets the expert's clean action for that state."""
+    env = make_env("pick_place", "block_right", render=False)
+    expert = make_expert(0.3)
+    obs, _ = env.reset(seed=3)
+    expert.reset(env, seed=3)
+    executed = expert(obs)
+    assert not np.allclose(executed[:6], expert.label[:6])
+    assert executed[6] == expert.label[6]  # the gripper command is never perturbed
+    ep = collect_episodes(lambda: make_env("pick_place", "block_right", render=False), make_expert(0.3), 1, seed=4)[0]
+    replay = make_env("pick_place", "block_right", render=False)
+    relabel = make_expert(0.3)
+    obs, _ = replay.reset(seed=ep.meta["seed"])
+    relabel.reset(replay, ep.meta["seed"])
+    for t in range(5):
+        action = relabel(obs)
+        np.testing.assert_allclose(ep.actions[t], relabel.label)
+        obs, *_ = replay.step(action)

@@ -35,7 +35,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--realism", default="ideal", choices=["ideal", "servo"])
         parser.add_argument("--image-size", type=int, default=None, help="camera resolution (default: "
                             f"{', '.join(f'{k} {v}' for k, v in DEFAULT_IMAGE_SIZE.items())})")
-        parser.add_argument("--noise", type=float, default=0.0, help="expert action noise (std, action units)")
+        parser.add_argument("--noise", type=float, default=0.0,
+                            help="noise on the expert's executed actions (std, action units); labels stay clean (DART)")
         parser.add_argument("--paraphrase", action="store_true", help="draw an instruction paraphrase per episode")
         parser.add_argument("--keep-failures", action="store_true",
                             help="keep failed expert episodes instead of replacing them with new seeds")

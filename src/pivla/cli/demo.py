@@ -30,7 +30,7 @@ class DemoConfig:
     test_episodes: int = 10  # per task and condition
     steps: int = 1800
     batch_size: int = 64
-    noise: float = 0.1  # expert noise for diverse demonstrations
+    noise: float = 0.3  # DART: noise on executed expert actions, clean labels (recovery data)
     conditions: tuple[str, ...] = ("in_distribution", "static_distractors", "unseen_env")
     levels: tuple[int, ...] = (0, 2, 4, 6)  # distraction levels for the Fig. 8 sweep
     level_executors: tuple[str, ...] = ("aurd", "fixed")

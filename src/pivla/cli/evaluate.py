@@ -17,6 +17,9 @@ def _add_eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realism", default="ideal", choices=["ideal", "servo"])
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--max-steps", type=int, default=None)
+    p.add_argument("--first-init-state", type=int, default=0,
+                   help="LIBERO: episode e uses official init state first+e (mod 50); keep test states apart "
+                        "from those the training demos came from")
 
 
 def register(command: str, parser: argparse.ArgumentParser) -> None:
@@ -71,7 +74,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     cfg = EvalConfig(policy=args.policy, out=args.out, env=args.env, suite=args.suite, tasks=args.tasks,
                      executor=args.executor, episodes=args.episodes, seed=args.seed, perturb=args.perturb,
                      realism=args.realism, workers=args.workers, videos=args.videos, max_steps=args.max_steps,
-                     executor_options=_parse_options(args.option), record=args.record)
+                     executor_options=_parse_options(args.option), record=args.record,
+                     first_init_state=args.first_init_state)
     res = evaluate(cfg)
     lo, hi = res["ci95"]
     print(f"{args.executor}: success {res['success_rate']:.1%} [{lo:.1%}, {hi:.1%}] over {res['episodes']} episodes; "

@@ -62,12 +62,13 @@ class EpisodeResult:
 
 
 def run_episode(env: Any, policy: Any, executor: BaseExecutor, seed: int | None = None,
-                max_steps: int | None = None, keep_episode: bool = False) -> EpisodeResult:
+                max_steps: int | None = None, keep_episode: bool = False,
+                reset_options: dict | None = None) -> EpisodeResult:
     """Run one episode of ``env`` with ``policy`` acting through ``executor``; the executor's trace and
     plan events come back with the outcome. ``keep_episode`` also returns the recorded Episode (for
     rollout datasets that teach the value head what failure looks like)."""
     actor = ExecutorActor(policy, executor)
-    ep = _run_actor_episode(env, actor, seed, max_steps)
+    ep = _run_actor_episode(env, actor, seed, max_steps, reset_options)
     return EpisodeResult(
         success=bool(ep.success), steps=len(ep), executor=executor.name, trace=list(executor.trace),
         plans=list(executor.plans), step_times=list(actor.step_times), seed=seed,

@@ -3,7 +3,8 @@
 An *actor* is any callable ``actor(obs) -> action (7,)``; if it has ``reset(env, seed)`` that is called
 after every ``env.reset``, and its ``source`` attribute ("expert", "policy", ...) is recorded. Every
 episode records its actions, observations (before each action), rewards, dones and success, so failed
-rollouts are as usable (for the value head) as successful demonstrations.
+rollouts are as usable (for the value head) as successful demonstrations. An actor that executes a
+perturbed action but wants a different one recorded (a DART expert) exposes it as ``actor.label``.
 
 Episode seeds depend only on (base seed, episode index), never on the number of worker processes, so
 ``--workers 1`` and ``--workers 4`` produce identical datasets.
@@ -33,9 +34,11 @@ def episode_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, int(index)]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
-def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None) -> Episode:
-    """Run one episode until success (terminated), the env's step limit (truncated) or ``max_steps``."""
-    obs, info = env.reset(seed=seed)
+def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None,
+                reset_options: dict | None = None) -> Episode:
+    """Run one episode until success (terminated), the env's step limit (truncated) or ``max_steps``;
+    ``reset_options`` go to ``env.reset`` (e.g. LIBERO's ``{"init_state": i}``)."""
+    obs, info = env.reset(seed=seed, options=reset_options)
     if hasattr(actor, "reset"):
         actor.reset(env, seed)
     task = getattr(env.unwrapped, "task", None)
@@ -48,8 +51,9 @@ def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None)
         action = np.asarray(actor(obs), dtype=np.float32)
         for key in frames:
             frames[key].append(obs[key])
+        label = getattr(actor, "label", None)
         obs, reward, terminated, truncated, info = env.step(action)
-        actions.append(action)
+        actions.append(action if label is None else np.asarray(label, dtype=np.float32))
         rewards.append(reward)
         dones.append(terminated or truncated)
         success = bool(info.get("success", False))

@@ -43,6 +43,9 @@ class EvalConfig:
     max_steps: int | None = None
     executor_options: dict = field(default_factory=dict)
     record: str | None = None  # directory to write every rollout (with success and rewards) as a dataset
+    # LIBERO: episode e starts from official init state first_init_state + e (mod 50), whatever the worker,
+    # so the test states are known and can be kept apart from the states demonstrations were collected on
+    first_init_state: int = 0
 
 
 def job_seed(seed: int, task_index: int, episode: int) -> int:
@@ -90,9 +93,11 @@ def _run_job(job: tuple[int, str, int, bool]) -> dict:
     cfg, policy = _STATE["cfg"], _STATE["policy"]
     seed = job_seed(cfg.seed, task_index, episode)
     t0 = time.perf_counter()
+    options = {"init_state": cfg.first_init_state + episode} if cfg.env == "libero" else None
     result = run_episode(_env(task_index), policy, make_executor(cfg.executor, **cfg.executor_options), seed=seed,
-                         max_steps=cfg.max_steps, keep_episode=keep_frames or cfg.record is not None)
-    row = {"task": task_name, "task_index": task_index, "episode": episode, **result.summary(),
+                         max_steps=cfg.max_steps, keep_episode=keep_frames or cfg.record is not None,
+                         reset_options=options)
+    row = {"task": task_name, "task_index": task_index, "episode": episode, **(options or {}), **result.summary(),
            "wall_s": time.perf_counter() - t0, "trace": result.trace, "plan_events": result.plans}
     if result.episode is not None:
         row["_episode"] = result.episode

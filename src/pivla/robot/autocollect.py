@@ -32,7 +32,7 @@ ARUCO_DICT = cv2.aruco.DICT_4X4_50
 MARKER_SIZE = 0.04  # m, black square edge
 MARKER_BORDER = 0.006  # m, white quiet zone printed around it
 # Marker centres on the table (base frame, m), ids 0..3: far enough from the arm and the objects.
-MARKER_CENTRES = {0: (0.27, 0.16), 1: (0.27, -0.16), 2: (0.06, 0.24), 3: (0.06, -0.24)}
+MARKER_CENTRES = {0: (0.25, 0.12), 1: (0.25, -0.12), 2: (0.06, 0.17), 3: (0.06, -0.17)}
 PLACE_DISTANCE = 0.09  # m along the instructed direction
 DIRECTIONS = {"away": np.array([1.0, 0.0]), "left": np.array([0.0, 1.0]), "right": np.array([0.0, -1.0])}
 SUCCESS_DISPLACEMENT = 0.05

@@ -7,8 +7,10 @@ recomputed from the live state every step with a clipped proportional law, and e
 or after a step budget (so a slipped grasp shows up as a failed episode, never as a hang). The loop is
 closed on the *measured* pose, so the same script works with servo backlash and deadband.
 
-``noise > 0`` makes demonstrations diverse: Gaussian action noise on the motion dimensions plus a
-per-episode draw of lift height, approach height and speed.
+``noise > 0`` makes demonstrations diverse and teaches recovery (DART, Laskey et al. 2017): Gaussian noise
+perturbs the *executed* motion, while the *recorded* label (``expert.label``) stays the expert's clean
+action for the state it actually reached, so a policy learns to correct drift instead of imitating the noise.
+A per-episode draw of lift height, approach height and speed adds variety.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ STALL = 0.0015  # m over three steps: a phase whose tool moves less than this ha
 
 @dataclass(frozen=True)
 class ExpertConfig:
-    noise: float = 0.0  # std of Gaussian noise on action dims 0..5 (in action units)
+    noise: float = 0.0  # std of Gaussian noise on executed action dims 0..5 (action units); labels stay clean
     gain: float = 0.9  # proportional gain (fraction of the error corrected per step)
     lift: float = 0.07  # carry height of the tool centre above its grasp height (m)
     approach: float = 0.05  # height above the grasp point before descending (m)
@@ -60,6 +62,7 @@ class Expert:
         self.approach = cfg.approach + 0.01 * jitter[1]
         self.gain = cfg.gain * (1.0 + 0.1 * jitter[2])
         self._plan = self._task_plan()
+        self.label: np.ndarray | None = None
 
     def __call__(self, obs: dict) -> np.ndarray:
         if self._plan is None:
@@ -67,10 +70,12 @@ class Expert:
         action = next(self._plan, None)
         if action is None:  # plan finished without success: hold still with the gripper open
             action = np.array([0, 0, 0, 0, 0, 0, -1.0])
-        if self.config.noise > 0:
-            action = action.copy()
-            action[:6] += self.rng.normal(0.0, self.config.noise, 6)
-        return np.clip(action, -1.0, 1.0).astype(np.float32)
+        self.label = np.clip(action, -1.0, 1.0).astype(np.float32)
+        if self.config.noise <= 0:
+            return self.label
+        executed = action.copy()
+        executed[:6] += self.rng.normal(0.0, self.config.noise, 6)
+        return np.clip(executed, -1.0, 1.0).astype(np.float32)
 
     # ------------------------------------------------------------------------------------------ primitives
     def _state(self) -> dict:

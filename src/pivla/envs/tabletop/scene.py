@@ -12,8 +12,11 @@ from pivla.envs.tabletop.tasks import CABINET_FRONT_X, OBJECTS, TaskDef
 TABLE_RGBA = (0.78, 0.66, 0.52, 1.0)
 FLOOR_RGBA = (0.35, 0.37, 0.4, 1.0)
 WALL_RGBA = (0.82, 0.84, 0.86, 1.0)
-AGENTVIEW_POS = np.array([0.47, 0.0, 0.36])
-AGENTVIEW_TARGET = np.array([0.15, 0.0, 0.04])
+# The agent view faces the robot across the workspace, framed on where objects start and land, so a 3 cm
+# object spans ~7 px of a 96-px image (from farther and wider it was ~4 px, too few to localise it).
+AGENTVIEW_POS = np.array([0.40, 0.0, 0.30])
+AGENTVIEW_TARGET = np.array([0.16, 0.0, 0.02])
+AGENTVIEW_FOVY = 50.0
 # Distractor slots cycle through these primitives (sizes are maxima; the perturbation scales them down).
 DISTRACTOR_SHAPES = (
     ("cylinder", "0.015 0.025"),
@@ -135,7 +138,7 @@ def scene_xml(task: TaskDef, n_distractors: int = 0) -> str:
     <geom name="table" type="box" pos="0.17 0 -0.02" size="0.38 0.5 0.02" material="table" condim="4"
           friction="1 0.01 0.001"/>
     <geom name="wall" type="box" pos="-0.45 0 0.4" size="0.01 2 0.6" material="wall" contype="0" conaffinity="0"/>
-    <camera name="agentview" pos="{_fmt(AGENTVIEW_POS)}" xyaxes="{cam_axes}" fovy="58"/>
+    <camera name="agentview" pos="{_fmt(AGENTVIEW_POS)}" xyaxes="{cam_axes}" fovy="{AGENTVIEW_FOVY:g}"/>
     {objects}{cabinet}{distractors}
   </worldbody>
   <contact><exclude body1="finger_left" body2="finger_right"/></contact>
