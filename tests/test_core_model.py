@@ -104,3 +104,32 @@ def test_ema_target_moves_towards_online_encoder():
     m.update_target()
     for b, a, o in zip(before, m.target.parameters(), m.backbone.vision.parameters()):
         torch.testing.assert_close(a, b + (o.detach() - b) * (1 - CFG.target_encoder.ema_decay))
+
+
+def test_spatial_softmax_finds_a_peak_where_it_is():
+    """A single strong feature at row 1, column 6 of an 8 x 8 map gives the keypoint at that pixel's
+    coordinates in [-1, 1] (x from the column, y from the row)."""
+    from pivla.model.backbone import SpatialSoftmax
+
+    kp = SpatialSoftmax(channels=1, keypoints=1)
+    with torch.no_grad():
+        kp.detect.weight.fill_(1.0)
+        kp.detect.bias.zero_()
+        kp.log_temperature.fill_(-3.0)  # sharp softmax
+    feats = torch.zeros(1, 1, 8, 8)
+    feats[0, 0, 1, 6] = 5.0
+    xy = kp(feats)[0, 0]
+    grid = torch.linspace(-1, 1, 8)
+    assert torch.allclose(xy, torch.stack([grid[6], grid[1]]), atol=1e-3)
+
+
+def test_keypoint_tokens_can_be_switched_off():
+    """keypoints=0 drops the spatial-softmax tokens (and their parameters); both variants give the same heads."""
+    on = CMSModel(CFG, vocab_size=10)
+    off_cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32),
+                                                                 keypoints=0))
+    off = CMSModel(off_cfg, vocab_size=10)
+    assert on.backbone.keypoints is not None and off.backbone.keypoints is None
+    assert not any("keypoints" in k or "kp_" in k for k in off.state_dict())
+    batch = fake_batch()
+    assert on(batch).continuous.shape == off(batch).continuous.shape == (3, CFG.chunk, CFG.action_dim)

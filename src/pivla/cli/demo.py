@@ -28,8 +28,8 @@ class DemoConfig:
     train_episodes: int = 40  # per task
     val_episodes: int = 5  # per task, for calibration only
     test_episodes: int = 10  # per task and condition
-    steps: int = 1800
-    batch_size: int = 64
+    steps: int = 3600  # more, smaller updates: at 1800 x 64 the policy had not learned to localise objects
+    batch_size: int = 32
     noise: float = 0.3  # DART: noise on executed expert actions, clean labels (recovery data)
     conditions: tuple[str, ...] = ("in_distribution", "static_distractors", "unseen_env")
     levels: tuple[int, ...] = (0, 2, 4, 6)  # distraction levels for the Fig. 8 sweep

@@ -40,13 +40,42 @@ class ConvEncoder(nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """(B, n_cam, 3, H, W) -> (B, n_cam, C, h, w)."""
+        return self.stages(images)[-1]
+
+    def stages(self, images: torch.Tensor) -> list[torch.Tensor]:
+        """The output of every stage, each (B, n_cam, C_i, h_i, w_i)."""
         b, n = images.shape[:2]
-        feats = self.net(images.flatten(0, 1) * 2.0 - 1.0)
-        return feats.unflatten(0, (b, n))
+        x = images.flatten(0, 1) * 2.0 - 1.0
+        outs = []
+        for i, layer in enumerate(self.net):
+            x = layer(x)
+            if i % 3 == 2:  # conv, norm, activation
+                outs.append(x.unflatten(0, (b, n)))
+        return outs
 
     def pooled(self, images: torch.Tensor) -> torch.Tensor:
         """Global-average-pooled features of every camera, concatenated: (B, n_cam * C)."""
         return self.forward(images).mean(dim=(-1, -2)).flatten(1)
+
+
+class SpatialSoftmax(nn.Module):
+    """Feature map -> K keypoints: the softmax-weighted mean image coordinates (x, y in [-1, 1]) of K
+    learned 1x1 feature detectors (Levine et al. 2016). Coordinates are what a controller needs, and
+    they come out exactly instead of being re-learned from patch positions."""
+
+    def __init__(self, channels: int, keypoints: int):
+        super().__init__()
+        self.detect = nn.Conv2d(channels, keypoints, 1)
+        self.log_temperature = nn.Parameter(torch.zeros(()))
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        """(N, C, h, w) -> (N, K, 2)."""
+        logits = self.detect(feats)
+        h, w = logits.shape[-2:]
+        attn = torch.softmax(logits.flatten(2) / self.log_temperature.exp(), dim=-1).unflatten(2, (h, w))
+        ys = torch.linspace(-1.0, 1.0, h, device=feats.device, dtype=attn.dtype)
+        xs = torch.linspace(-1.0, 1.0, w, device=feats.device, dtype=attn.dtype)
+        return torch.stack([(attn.sum(-2) * xs).sum(-1), (attn.sum(-1) * ys).sum(-1)], dim=-1)
 
 
 class SmallBackbone(nn.Module):
@@ -66,6 +95,11 @@ class SmallBackbone(nn.Module):
         n_patch = self.vision.grid**2
         self.img_proj = nn.Linear(self.vision.out_channels, d)
         self.img_pos = nn.Parameter(torch.randn(1, n_cam, n_patch, d) * 0.02)
+        self.keypoints = None
+        if bc.keypoints > 0:
+            self.keypoints = SpatialSoftmax(bc.vision_channels[-2], bc.keypoints)
+            self.kp_proj = nn.Sequential(nn.Linear(2 * bc.keypoints, d), nn.GELU(), nn.Linear(d, d))
+            self.kp_cam = nn.Parameter(torch.randn(1, n_cam, d) * 0.02)
         self.word_emb = nn.Embedding(vocab_size, d, padding_idx=0)
         self.text_pos = nn.Parameter(torch.randn(1, cfg.max_text_len, d) * 0.02)
         self.proprio_proj = nn.Sequential(nn.Linear(cfg.proprio_dim, d), nn.GELU(), nn.Linear(d, d))
@@ -77,10 +111,14 @@ class SmallBackbone(nn.Module):
         self.norm = nn.LayerNorm(d)
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        feats = self.vision(batch["images"])  # (B, n_cam, C, h, w)
-        b = feats.shape[0]
+        stages = self.vision.stages(batch["images"])
+        feats = stages[-1]  # (B, n_cam, C, h, w)
+        b, n_cam = feats.shape[:2]
         img = self.img_proj(feats.flatten(3).transpose(2, 3)) + self.img_pos  # (B, n_cam, hw, d)
         img = img.flatten(1, 2)
+        if self.keypoints is not None:
+            kp = self.keypoints(stages[-2].flatten(0, 1)).flatten(1).unflatten(0, (b, n_cam))  # (B, n_cam, 2K)
+            img = torch.cat([img, self.kp_proj(kp) + self.kp_cam], dim=1)
         text = self.word_emb(batch["text_ids"]) + self.text_pos[:, : batch["text_ids"].shape[1]]
         prop = self.proprio_proj(batch["proprio"]).unsqueeze(1)
         queries = self.queries.expand(b, -1, -1)

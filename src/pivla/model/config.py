@@ -17,6 +17,9 @@ class BackboneConfig:
     ff_mult: int = 2
     n_cog_tokens: int = 4
     vision_channels: tuple[int, ...] = (32, 64, 128, 128)
+    # spatial-softmax keypoints per camera, read from the second-to-last CNN stage (0 = off): explicit
+    # image coordinates of learned features, which a policy needs to localise small objects quickly
+    keypoints: int = 32
     dropout: float = 0.0
     # hf backbone
     path: str = ""

@@ -10,7 +10,10 @@ closed on the *measured* pose, so the same script works with servo backlash and 
 ``noise > 0`` makes demonstrations diverse and teaches recovery (DART, Laskey et al. 2017): Gaussian noise
 perturbs the *executed* motion, while the *recorded* label (``expert.label``) stays the expert's clean
 action for the state it actually reached, so a policy learns to correct drift instead of imitating the noise.
-A per-episode draw of lift height, approach height and speed adds variety.
+Phases that end on a millimetre tolerance (``PRECISE_PHASES``: setting an object down, gripping, releasing)
+run without noise: with it, lowering took ~11 steps instead of 3, and the demonstrations taught a policy to
+hover with the object instead of letting go. A per-episode draw of lift height, approach height and speed
+adds variety.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from pivla.envs.tabletop.env import ROT_SCALE, TRANS_SCALE, TabletopEnv
 
 Target = Callable[[dict], np.ndarray]
 STALL = 0.0015  # m over three steps: a phase whose tool moves less than this has stalled
+PRECISE_PHASES = frozenset({"lower", "close", "release"})  # no DART noise while these run
 
 
 @dataclass(frozen=True)
@@ -71,7 +75,7 @@ class Expert:
         if action is None:  # plan finished without success: hold still with the gripper open
             action = np.array([0, 0, 0, 0, 0, 0, -1.0])
         self.label = np.clip(action, -1.0, 1.0).astype(np.float32)
-        if self.config.noise <= 0:
+        if self.config.noise <= 0 or self.phase in PRECISE_PHASES:
             return self.label
         executed = action.copy()
         executed[:6] += self.rng.normal(0.0, self.config.noise, 6)
