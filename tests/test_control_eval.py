@@ -93,3 +93,21 @@ def test_auroc_hand_computed():
     assert auroc([0.1, 0.8, 0.9], [1, 0, 0]) == 0.0
     assert auroc([0.5, 0.5], [1, 0]) == 0.5
     assert auroc([0.5], [1]) is None
+
+
+def test_calibrate_on_the_runs_held_out_episodes(synthetic_data, tmp_path, capsys):
+    """``pivla calibrate --held-out`` uses exactly the episodes split.json kept out of training."""
+    from pivla.cli import main
+    from pivla.cli.evaluate import held_out_episodes
+
+    run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, val_fraction=0.25))
+    split = json.loads((run / "split.json").read_text())
+    episodes = read_dataset(synthetic_data)
+    held = held_out_episodes(str(run), episodes)
+    assert len(held) == len(split["val_episodes"]) > 0
+    assert all(h is episodes[i] for h, i in zip(held, split["val_episodes"]))
+    assert main(["calibrate", "--policy", str(run), "--data", str(synthetic_data), "--held-out"]) == 0
+    saved = json.loads((run / "calibration.json").read_text())
+    assert saved["source"].endswith("(held-out split)") and saved["tau_high"] >= saved["tau_low"]
+    with pytest.raises(SystemExit, match="trained on"):
+        held_out_episodes(str(run), episodes[:-1])

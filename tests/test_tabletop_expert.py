@@ -56,3 +56,15 @@ def test_noise_perturbs_execution_but_records_clean_labels():
         action = relabel(obs)
         np.testing.assert_allclose(ep.actions[t], relabel.label)
         obs, *_ = replay.step(action)
+
+
+def test_demonstrations_follow_through_after_success():
+    """A demo goes on past the first opening step: the release is shown, then the retreat; the episode
+    stays successful and has a single terminal step (so GAE sees one episode)."""
+    factory = lambda: make_env("pick_place", "block_left", render=False)  # noqa: E731
+    expert = make_expert(0.0)
+    ep = collect_episodes(factory, expert, 1, seed=2)[0]
+    assert ep.success and ep.dones.sum() == 1 and ep.dones[-1] == 1
+    assert (ep.actions[-(expert.follow_through + 1):, 6] == -1.0).all()
+    assert ep.actions[-1, 2] > 0  # moving away at the end
+    assert float(ep.rewards.sum()) == pytest.approx(1.0)

@@ -40,6 +40,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--tau-high-pct", type=float, default=95.0)
         parser.add_argument("--v-pct", type=float, default=10.0)
         parser.add_argument("--eta", type=float, default=0.7)
+        parser.add_argument("--held-out", action="store_true",
+                            help="--data is the run's training data: use only the episodes its split.json held out")
         parser.set_defaults(func=cmd_calibrate)
     elif command == "ablate":
         parser.add_argument("--data", required=True, help="training dataset")
@@ -84,6 +86,20 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def held_out_episodes(run_dir: str, episodes: list) -> list:
+    """The episodes of a run's training data that its ``split.json`` kept out of training."""
+    from pathlib import Path
+
+    split = json.loads((Path(run_dir) / "split.json").read_text())
+    n = len(split["train_episodes"]) + len(split["val_episodes"])
+    if n != len(episodes):
+        raise SystemExit(f"--held-out: the run was trained on {n} episodes, --data has {len(episodes)}; "
+                         "give the run's training data (without --extra-data)")
+    if not split["val_episodes"]:
+        raise SystemExit("--held-out: the run held out no episodes (trained with --val-fraction 0)")
+    return [episodes[i] for i in split["val_episodes"]]
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from pivla import load_policy
     from pivla.control.calibrate import CalibrationConfig, calibrate
@@ -91,7 +107,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     policy = load_policy(args.policy, device="cpu")
     cfg = CalibrationConfig(args.tau_low_pct, args.tau_high_pct, args.v_pct, args.eta)
-    calib, stats = calibrate(policy, read_dataset(args.data), cfg, source=str(args.data))
+    episodes = read_dataset(args.data)
+    source = str(args.data)
+    if args.held_out:
+        episodes = held_out_episodes(args.policy, episodes)
+        source += " (held-out split)"
+    calib, stats = calibrate(policy, episodes, cfg, source=source)
     print(json.dumps({"calibration": vars(calib), **stats}, indent=2))
     return 0
 

@@ -4,7 +4,9 @@ An *actor* is any callable ``actor(obs) -> action (7,)``; if it has ``reset(env,
 after every ``env.reset``, and its ``source`` attribute ("expert", "policy", ...) is recorded. Every
 episode records its actions, observations (before each action), rewards, dones and success, so failed
 rollouts are as usable (for the value head) as successful demonstrations. An actor that executes a
-perturbed action but wants a different one recorded (a DART expert) exposes it as ``actor.label``.
+perturbed action but wants a different one recorded (a DART expert) exposes it as ``actor.label``; one
+whose demonstration should go on past the moment of success (to let go and move away, not just the first
+step of opening) sets ``actor.follow_through`` to the number of extra steps to record.
 
 Episode seeds depend only on (base seed, episode index), never on the number of worker processes, so
 ``--workers 1`` and ``--workers 4`` produce identical datasets.
@@ -47,6 +49,7 @@ def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None,
     actions, rewards, dones = [], [], []
     instruction = obs.get("instruction", "")
     success = bool(info.get("success", False))
+    extra = int(getattr(actor, "follow_through", 0))
     for _ in range(limit):
         action = np.asarray(actor(obs), dtype=np.float32)
         for key in frames:
@@ -57,6 +60,10 @@ def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None,
         rewards.append(reward)
         dones.append(terminated or truncated)
         success = bool(info.get("success", False))
+        if terminated and success and extra > 0 and not truncated:
+            extra -= 1
+            dones[-1] = False  # the episode goes on: only its last step is terminal
+            continue
         if terminated or truncated:
             break
     if dones:

@@ -38,6 +38,9 @@ class ExpertConfig:
     lift: float = 0.07  # carry height of the tool centre above its grasp height (m)
     approach: float = 0.05  # height above the grasp point before descending (m)
     grip_steps: int = 3  # control steps to close or open the gripper
+    # steps recorded after success: the task succeeds on the first opening step, and a demonstration that
+    # stops there shows release once, so policies learned to set the object down and keep holding it
+    follow_through: int = 5
 
 
 def _wrap(angle: float, period: float) -> float:
@@ -51,6 +54,7 @@ class Expert:
 
     def __init__(self, config: ExpertConfig | None = None):
         self.config = config or ExpertConfig()
+        self.follow_through = self.config.follow_through
         self.env: TabletopEnv | None = None
         self._plan: Iterator[np.ndarray] | None = None
         self.phase = ""
