@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from pivla.control import make_executor
+from pivla.control.math import adahorizon
 from pivla.policy import Calibration
 
 
@@ -123,6 +124,21 @@ def test_adahorizon_executor_follows_rule():
     acts = run(ex, p, 7)
     assert [a[0] for a in acts] == [1] * 6 + [2]
     assert ex.plans[0] == (6, "complete")
+
+
+def test_adahorizon_uses_calibrated_thresholds_unless_given():
+    u = [0.01, 0.02, 0.03, 0.04, 0.05, 0.2, 0.2, 0.2]
+    uncalibrated = ScriptedPolicy(u_act=u)  # EverydayVLA's 0.03 / 0.06: extend while < 0.03
+    calibrated = ScriptedPolicy(u_act=u, calibration=Calibration(0.2, 0.5, 0.3, act_low=0.1, act_high=0.15))
+    assert adahorizon(np.array(u), 4, 0.03, 0.06) == (4, "complete")
+    ex = make_executor("adahorizon")
+    run(ex, uncalibrated, 1)
+    assert ex.plans[0] == (4, "complete")
+    run(ex, calibrated, 1)
+    assert ex.plans[0] == (5, "complete")  # extends while U_act < act_low = 0.1
+    ex = make_executor("adahorizon", replan_above=0.025)
+    run(ex, calibrated, 1)
+    assert ex.plans[0] == (2, "replan")  # explicit threshold wins: U_act[2] = 0.03 > 0.025
 
 
 def test_unknown_executor():

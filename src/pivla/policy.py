@@ -26,13 +26,16 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Calibration:
-    """AURD thresholds calibrated on validation data (never on test episodes)."""
+    """Executor thresholds calibrated on validation data (never on test episodes): AURD's, and the same
+    percentiles of U_act alone for AdaHorizon (None in files written before they existed)."""
 
     tau_low: float
     tau_high: float
     v_thresh: float
     eta: float = 0.7
     source: str = ""
+    act_low: float | None = None  # P(tau_low_pct) of U_act: AdaHorizon extends below it
+    act_high: float | None = None  # P(tau_high_pct) of U_act: AdaHorizon replans above it
 
 
 def select_device(device: str = "auto") -> torch.device:

@@ -5,7 +5,9 @@ V[k]; the episode's real next observations give U_pred[k] = ||Enc(o_{t+k}) - z_h
 AURD sees it online (the newest prediction error before step k; 0 for k = 0). Thresholds are percentiles
 of these in-distribution signals: tau_low = P50(U), tau_high = P95(U), V_thresh = P10(V) by default, so
 that on data like the validation set AURD rarely intervenes, and it intervenes when signals leave that
-range.
+range. The same percentiles of U_act alone give AdaHorizon its thresholds (``act_low``, ``act_high``):
+EverydayVLA's absolute 0.03 / 0.06 belong to its model's action scale, and on ours they made it replan
+after every action (docs/results.md).
 """
 
 from __future__ import annotations
@@ -72,8 +74,10 @@ def thresholds(signals: dict[str, np.ndarray], cfg: CalibrationConfig, source: s
     v = signals["v"].ravel()
     tau_low = float(np.percentile(u, cfg.tau_low_pct))
     tau_high = float(np.percentile(u, cfg.tau_high_pct))
+    u_act = signals["u_act"][np.isfinite(signals["u_act"])]
+    act_low, act_high = (float(np.percentile(u_act, q)) for q in (cfg.tau_low_pct, cfg.tau_high_pct))
     return Calibration(tau_low=tau_low, tau_high=max(tau_high, tau_low), v_thresh=float(np.percentile(v, cfg.v_pct)),
-                       eta=cfg.eta, source=source)
+                       eta=cfg.eta, source=source, act_low=act_low, act_high=max(act_high, act_low))
 
 
 def calibrate(policy: Policy, episodes: list[Episode], cfg: CalibrationConfig | None = None, source: str = "",

@@ -19,6 +19,7 @@ import numpy as np
 from pivla.control.math import action_uncertainty, adahorizon, prediction_uncertainty, step_event, temporal_ensemble
 
 GRIPPER = 6
+EVERYDAYVLA_EXTEND_BELOW, EVERYDAYVLA_REPLAN_ABOVE = 0.03, 0.06  # AdaHorizon's constants in its own code
 
 
 @dataclass
@@ -131,12 +132,15 @@ class EnsembleExecutor(BaseExecutor):
 
 @dataclass
 class AdaHorizonExecutor(BaseExecutor):
-    """EverydayVLA's AdaHorizon: horizon chosen per chunk from the discrete/continuous disagreement."""
+    """EverydayVLA's AdaHorizon: horizon chosen per chunk from the discrete/continuous disagreement.
+
+    Thresholds: given explicitly, else the policy's calibrated ``act_low`` / ``act_high`` (percentiles of
+    U_act on validation data, like AURD's), else EverydayVLA's absolute 0.03 / 0.06."""
 
     name: str = "adahorizon"
     min_exec: int = 4
-    extend_below: float = 0.03
-    replan_above: float = 0.06
+    extend_below: float | None = None
+    replan_above: float | None = None
     _plan: Plan | None = None
     _k: int = 0
     _h: int = 0
@@ -145,12 +149,19 @@ class AdaHorizonExecutor(BaseExecutor):
         super().reset()
         self._plan, self._k, self._h = None, 0, 0
 
+    def _thresholds(self, policy) -> tuple[float, float]:
+        c = policy.calibration
+        low = c.act_low if c is not None and c.act_low is not None else EVERYDAYVLA_EXTEND_BELOW
+        high = c.act_high if c is not None and c.act_high is not None else EVERYDAYVLA_REPLAN_ABOVE
+        return (low if self.extend_below is None else self.extend_below,
+                high if self.replan_above is None else self.replan_above)
+
     def act(self, policy, obs: dict) -> np.ndarray:
         replanned = self._plan is None or self._k >= self._h
         event = None
         if replanned:
             self._plan = Plan.from_output(policy.infer(obs))
-            self._h, event = adahorizon(self._plan.u_act, self.min_exec, self.extend_below, self.replan_above)
+            self._h, event = adahorizon(self._plan.u_act, self.min_exec, *self._thresholds(policy))
             self._k = 0
             self.plans.append((self._h, event))
         k, p = self._k, self._plan
