@@ -54,10 +54,14 @@ class Expert:
 
     def __init__(self, config: ExpertConfig | None = None):
         self.config = config or ExpertConfig()
-        self.follow_through = self.config.follow_through
         self.env: TabletopEnv | None = None
         self._plan: Iterator[np.ndarray] | None = None
         self.phase = ""
+
+    @property
+    def follow_through(self) -> int:
+        """Steps the rollout runner records after success (see ``ExpertConfig.follow_through``)."""
+        return self.config.follow_through
 
     def reset(self, env, seed: int | None = None) -> None:
         self.env = env.unwrapped
