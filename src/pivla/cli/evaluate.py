@@ -90,7 +90,10 @@ def held_out_episodes(run_dir: str, episodes: list) -> list:
     """The episodes of a run's training data that its ``split.json`` kept out of training."""
     from pathlib import Path
 
-    split = json.loads((Path(run_dir) / "split.json").read_text())
+    path = Path(run_dir) / "split.json"
+    if not path.exists():
+        raise SystemExit(f"--held-out: {path} not found (written by `pivla train`); give --data without --held-out")
+    split = json.loads(path.read_text())
     n = len(split["train_episodes"]) + len(split["val_episodes"])
     if n != len(episodes):
         raise SystemExit(f"--held-out: the run was trained on {n} episodes, --data has {len(episodes)}; "
