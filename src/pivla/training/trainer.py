@@ -294,4 +294,8 @@ class Trainer:
 def train(cfg: TrainConfig, resume: bool = False) -> Path:
     """Train (or resume) a run; returns its directory."""
     os.makedirs(cfg.out, exist_ok=True)
-    return Trainer(cfg, resume=resume).run()
+    trainer = Trainer(cfg, resume=resume)
+    run_dir = trainer.run()
+    # Tear the process group down explicitly: left to interpreter exit, gloo can abort a rank (SIGABRT).
+    trainer.acc.end_training()
+    return run_dir
