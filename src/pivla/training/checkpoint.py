@@ -3,6 +3,7 @@
 A run directory holds what a user deploys — ``model.safetensors``, ``config.json``, ``norm_stats.json``,
 ``tokenizer.json`` (and ``calibration.json`` once AURD thresholds are calibrated) — plus ``status.json``
 and ``checkpoints/step_<N>/`` with the optimizer, scheduler and RNG state that ``--resume`` needs.
+Tensors are always full (the trainer gathers FSDP shards first), so files do not depend on how a run was sharded.
 """
 
 from __future__ import annotations

@@ -1,8 +1,10 @@
 """Training loop for the CMS model with the unified objective.
 
 One code path for CPU, one GPU and several GPUs or nodes: Accelerate wraps the model (DDP when launched
-with ``torchrun`` or ``accelerate launch``) and handles mixed precision. Batches are a pure function of
-(seed, step, rank), so ``--resume`` replays exactly what an uninterrupted run would have done.
+with ``torchrun`` or ``accelerate launch``; FSDP2 with ``--fsdp true`` or ``accelerate launch --use_fsdp``)
+and handles mixed precision. Batches are a pure function of (seed, step, rank), so ``--resume`` replays
+exactly what an uninterrupted run would have done. Checkpoints always hold full tensors, so a run trained
+under FSDP loads and resumes like any other.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
+from torch.distributed.tensor import DTensor, distribute_tensor
 
 from pivla import config as cfgmod
 from pivla.data.dataset import (
@@ -59,6 +63,7 @@ class TrainConfig:
     mixed_precision: str = "auto"  # auto: bf16 on a GPU that supports it, else no
     device: str = "auto"  # auto | cpu | cuda
     threads: int = 0  # torch intra-op threads on CPU; 0 = all cores
+    fsdp: bool = False  # shard parameters, gradients and optimizer state across processes (FSDP2) instead of DDP
     progress: bool = True
     model: ModelConfig = field(default_factory=ModelConfig)
     loss: LossConfig = field(default_factory=LossConfig)
@@ -72,14 +77,67 @@ def lr_lambda(step: int, cfg: TrainConfig) -> float:
     return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
+def _fsdp_plugin(cfg: TrainConfig):
+    """FSDP2 from ``--fsdp true`` or from ``accelerate launch --use_fsdp`` (the plugin reads the other FSDP_*
+    settings from the environment). FSDP1 is refused: it replaces parameters by flat shards, and the trainer
+    calls the unwrapped model (loss terms, validation, the EMA target) outside the wrapper."""
+    from accelerate.utils import FullyShardedDataParallelPlugin, parse_flag_from_env
+
+    if not (cfg.fsdp or parse_flag_from_env("ACCELERATE_USE_FSDP")):
+        return None
+    version = 2 if cfg.fsdp else int(os.environ.get("FSDP_VERSION", "1"))  # Accelerate's default is 1
+    if version != 2:
+        raise ValueError(f"FSDP version {version} is not supported: launch with --fsdp_version 2 or pass --fsdp true")
+    # transformer blocks become their own FSDP units (names filled in by the Trainer), unless the launcher chose
+    policy = None if "FSDP_AUTO_WRAP_POLICY" in os.environ else "transformer_based_wrap"
+    # Every rank builds the whole model from local files, so rank-0-only loading (on by default in
+    # `accelerate launch`) saves nothing, and its loader assumes a transformers model (it fails on CMSModel).
+    return FullyShardedDataParallelPlugin(fsdp_version=2, auto_wrap_policy=policy, cpu_ram_efficient_loading=False)
+
+
 def _accelerator(cfg: TrainConfig):
     from accelerate import Accelerator
+    from accelerate.state import PartialState
+    from accelerate.utils import DistributedType
 
     use_cpu = cfg.device == "cpu" or (cfg.device == "auto" and not torch.cuda.is_available())
     mp = cfg.mixed_precision
     if mp == "auto":
         mp = "bf16" if (not use_cpu and torch.cuda.is_bf16_supported()) else "no"
-    return Accelerator(cpu=use_cpu, mixed_precision=mp)
+    plugin = _fsdp_plugin(cfg)
+    acc = Accelerator(cpu=use_cpu, mixed_precision=mp, fsdp_plugin=plugin)
+    if plugin is not None and acc.distributed_type == DistributedType.MULTI_CPU:
+        # Accelerate enables FSDP only on accelerator backends and would silently run DDP here, but torch's
+        # fully_shard works with gloo: switch the shared state exactly as AcceleratorState does on GPUs.
+        if mp != "no":
+            plugin.set_mixed_precision(mp)
+        acc.state.fsdp_plugin = plugin
+        acc.state.distributed_type = PartialState._shared_state["distributed_type"] = DistributedType.FSDP
+    if plugin is not None and acc.distributed_type != DistributedType.FSDP:
+        log.warning("FSDP requested, but Accelerate runs %s (a single process?): training without sharding",
+                    acc.distributed_type)
+    return acc
+
+
+def _fsdp_blocks(model: nn.Module) -> list[str]:
+    """Classes that get their own FSDP unit, so that only one block's weights are gathered at a time: what
+    Hugging Face models declare in ``_no_split_modules``, and the small backbone's transformer layers."""
+    present = {type(m).__name__ for m in model.modules()}
+    names = {n for m in model.modules() for n in getattr(m, "_no_split_modules", None) or ()}
+    names |= {type(m).__name__ for m in model.modules() if isinstance(m, nn.TransformerEncoderLayer)}
+    return sorted(names & present)
+
+
+def _shard_like(value, param: torch.Tensor):
+    """This rank's part of a full tensor shaped like an FSDP-sharded parameter, laid out like it (no traffic)."""
+    if isinstance(param, DTensor) and torch.is_tensor(value) and value.shape == param.shape:
+        return distribute_tensor(value.to(param.device), param.device_mesh, param.placements, src_data_rank=None)
+    return value
+
+
+def _full(tensors: dict) -> dict:
+    """Gather FSDP shards (DTensors) into full CPU tensors; a collective, so every rank calls it in the same order."""
+    return {k: v.full_tensor().cpu() if isinstance(v, DTensor) else v for k, v in tensors.items()}
 
 
 def load_episodes(cfg: TrainConfig):
@@ -95,6 +153,8 @@ class Trainer:
     """Holds the state of one run; ``run()`` trains to ``cfg.steps`` and returns the run directory."""
 
     def __init__(self, cfg: TrainConfig, resume: bool = False):
+        from accelerate.utils import DistributedType
+
         self.cfg = cfg
         self.run_dir = Path(cfg.out)
         if cfg.threads > 0:
@@ -117,6 +177,9 @@ class Trainer:
         self.val_set = ChunkDataset(prep([episodes[i] for i in val_idx]), cfg.model, cfg.loss.sp_steps) if val_idx else None
         self.split = {"train_episodes": [int(i) for i in train_idx], "val_episodes": [int(i) for i in val_idx]}
         self.model = CMSModel(cfg.model, len(self.text.vocab)).to(self.device)
+        self.fsdp = self.acc.distributed_type == DistributedType.FSDP
+        if self.fsdp:
+            self._configure_fsdp()
         params = [p for p in self.model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: lr_lambda(s, cfg))
@@ -124,20 +187,32 @@ class Trainer:
         self.history: list[dict] = []
         self._values: list[np.ndarray] = []  # V(s_t) table behind the current GAE advantages
         self.started = time.time()
-        if resume:
-            self._resume()
+        optimizer_state = self._resume() if resume else None
         self.ddp_model, self.optimizer = self.acc.prepare(self.model, self.optimizer)
+        if optimizer_state is not None:  # after prepare: under FSDP the optimizer now holds sharded parameters
+            self._load_optimizer_state(optimizer_state)
         self.writer = None
 
+    def _configure_fsdp(self) -> None:
+        """Refuse what fully_shard cannot shard; transformer blocks become units unless the launcher named classes."""
+        scalars = [n for n, p in self.model.named_parameters() if p.dim() == 0]
+        if scalars:
+            raise ValueError(f"FSDP cannot shard scalar parameters {scalars}; with the small backbone, "
+                             "pass --model.backbone.keypoints 0")
+        plugin = self.acc.state.fsdp_plugin
+        if plugin.transformer_cls_names_to_wrap is None:
+            plugin.transformer_cls_names_to_wrap = _fsdp_blocks(self.model)
+
     # -- state ---------------------------------------------------------------------------------------
-    def _resume(self) -> None:
+    def _resume(self) -> dict | None:
+        """Restore everything but the optimizer (before ``prepare``, into the whole model); returns the
+        optimizer state, which is loaded after ``prepare``."""
         ckpt = ck.latest_checkpoint(self.run_dir)
         if ckpt is None:
             log.warning("--resume: no checkpoint in %s, starting from scratch", self.run_dir)
-            return
+            return None
         model_state, opt_state, train_state = ck.load_checkpoint(ckpt)
         self.model.load_checkpoint_state(model_state, str(ckpt))
-        self.optimizer.load_state_dict(opt_state)
         self.scheduler.load_state_dict(train_state["scheduler"])
         self.step = int(train_state["step"])
         self.history = train_state.get("history", [])
@@ -145,11 +220,25 @@ class Trainer:
         if "values" in train_state:
             self._set_values([np.asarray(v, np.float32) for v in train_state["values"]])
         log.info("resumed from %s at step %d", ckpt, self.step)
+        return opt_state
+
+    def _load_optimizer_state(self, state: dict) -> None:
+        """Checkpoints hold full tensors; under FSDP each rank keeps its shard of the moments."""
+        if self.fsdp:
+            params = [p for group in self.optimizer.param_groups for p in group["params"]]
+            state = {**state, "state": {i: {k: _shard_like(v, params[i]) for k, v in s.items()}
+                                        for i, s in state["state"].items()}}
+        self.optimizer.load_state_dict(state)
 
     def _save(self, final: bool = False) -> None:
+        """Under FSDP every rank takes part (the shards are gathered), and rank 0 writes the same files as DDP."""
+        if not (self.fsdp or self.acc.is_main_process):
+            return
+        state = _full(self.model.state_dict_for_checkpoint())
+        opt_state = self.optimizer.state_dict()
+        opt_state = {**opt_state, "state": {i: _full(s) for i, s in opt_state["state"].items()}}
         if not self.acc.is_main_process:
             return
-        state = self.model.state_dict_for_checkpoint()
         train_state = {
             "scheduler": self.scheduler.state_dict(),
             "torch_rng": torch.get_rng_state().tolist(),
@@ -157,7 +246,7 @@ class Trainer:
         }
         if self._values:
             train_state["values"] = [v.tolist() for v in self._values]
-        ck.save_checkpoint(self.run_dir, self.step, state, self.optimizer.state_dict(), train_state, self.cfg.keep_checkpoints)
+        ck.save_checkpoint(self.run_dir, self.step, state, opt_state, train_state, self.cfg.keep_checkpoints)
         self.write_run_files(state)
         self._write_status(done=final)
 
