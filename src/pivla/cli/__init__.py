@@ -13,6 +13,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("pivla.cli.train", "train a CMS policy on a dataset directory"),
     "info": ("pivla.cli.train", "print a run's config, parameter counts and training status"),
     "merge-lora": ("pivla.cli.merge", "merge an hf run's LoRA adapters into its backbone for deployment"),
+    "convert-openvla": ("pivla.cli.convert", "convert OpenVLA's released checkpoint for --backbone hf (no timm)"),
     "bench": ("pivla.cli.bench", "benchmarks: infer, sim, control"),
     "collect": ("pivla.cli.collect", "collect expert demonstrations or policy rollouts into a dataset"),
     "export-video": ("pivla.cli.collect", "write MP4 previews of a dataset's episodes"),

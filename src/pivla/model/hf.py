@@ -1,7 +1,8 @@
 """The paper-scale backbone: a local Hugging Face vision-language model fine-tuned with LoRA.
 
 The paper builds CMS on OpenVLA-7B. This backbone reads any Llava-style checkpoint that transformers loads
-with ``AutoModelForImageTextToText`` (a vision tower, a projector and a decoder-only language model), and
+with ``AutoModelForImageTextToText`` (a vision tower, a projector and a decoder-only language model),
+OpenVLA converted by ``pivla convert-openvla`` (plain transformers parts, see ``pivla.model.openvla``), and
 OpenVLA's released layout (``model_type`` "openvla": a fused DINOv2 + SigLIP backbone, projector and
 Llama-2) through the checkpoint's own code, always from a local directory (nothing is downloaded).
 
@@ -195,16 +196,22 @@ def _tokenizer_files(tok) -> dict[str, dict]:
 # -- loading the vision-language model ------------------------------------------------------------------------
 def load_vlm(path: Path, dtype: torch.dtype) -> tuple[str, nn.Module]:
     """(kind, model): ``llava`` for anything AutoModelForImageTextToText reads with a vision tower and a
-    projector, ``openvla`` for OpenVLA's released layout (its own modeling code, which needs ``timm``)."""
+    projector, ``openvla`` for OpenVLA, converted (plain transformers parts) or in its released layout (its
+    own modeling code, which needs ``timm``). Both OpenVLA forms expose the same parts."""
     import transformers
 
+    from pivla.model.openvla import MARKER, OpenVLAModel
+
+    if (path / MARKER).is_file():
+        return "openvla", OpenVLAModel.from_pretrained(path, dtype)
     cfg = json.loads((path / "config.json").read_text())
     if cfg.get("model_type") in ("openvla", "prismatic"):
         from transformers.dynamic_module_utils import get_class_from_dynamic_module
 
         ref = (cfg.get("auto_map") or {}).get("AutoModelForVision2Seq")
         if not ref:
-            raise ValueError(f"{path}: an OpenVLA config.json must name its model class in auto_map")
+            raise ValueError(f"{path}: an OpenVLA config.json must name its model class in auto_map "
+                             "(or convert the checkpoint with `pivla convert-openvla`)")
         cls = get_class_from_dynamic_module(ref, str(path), local_files_only=True)
         model = cls.from_pretrained(str(path), dtype=dtype, trust_remote_code=True, local_files_only=True,
                                     attn_implementation="sdpa")
@@ -227,7 +234,8 @@ class _Parts:
             self.tower, self.projector = model.vision_backbone, model.projector
             self.decoder = model.language_model.model
             self.layer, self.strategy = None, "full"
-            self.vision_size = int(model.config.image_sizes[0])
+            sizes = getattr(model, "image_sizes", None) or model.config.image_sizes  # converted / remote code
+            self.vision_size = int(sizes[0])
         else:
             inner = getattr(model, "model", model)
             self.tower, self.projector = inner.vision_tower, inner.multi_modal_projector
@@ -291,6 +299,14 @@ def lora_target_names(model: nn.Module, targets: tuple[str, ...]) -> list[str]:
     return names
 
 
+def enable_activation_checkpointing(model: nn.Module, kwargs: dict | None) -> None:
+    """``activation_checkpointing_enable`` (transformers >= 5.20) or its older name."""
+    if hasattr(model, "activation_checkpointing_enable"):
+        model.activation_checkpointing_enable(activation_checkpointing_kwargs=kwargs)
+    else:
+        model.gradient_checkpointing_enable(gradient_checkpointing_kwargs=kwargs)
+
+
 class HFBackbone(nn.Module):
     """Backbone ``hf``: see the module docstring. ``cfg.backbone.path`` is a local checkpoint directory."""
 
@@ -310,11 +326,7 @@ class HFBackbone(nn.Module):
         self.vlm = vlm
         self.kind = kind
         if bc.gradient_checkpointing:
-            base = self.base_model()
-            if hasattr(base, "activation_checkpointing_enable"):  # transformers >= 5.20
-                base.activation_checkpointing_enable(activation_checkpointing_kwargs={"use_reentrant": False})
-            else:
-                base.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+            enable_activation_checkpointing(self.base_model(), {"use_reentrant": False})
         self.parts = _Parts(kind, self.base_model())
         self.pixels = PixelSpec.from_dir(path, self.parts.vision_size)
         d = self.parts.hidden
