@@ -16,7 +16,7 @@ from pivla.training.trainer import train
 from tests.conftest import tiny_train_config
 
 KEYS = {"success_rate", "ci95", "episodes", "per_task", "executor", "mean_executed_horizon", "replans", "prunes",
-        "pauses", "control_hz", "failure_prediction"}
+        "pauses", "control_hz", "failure_prediction", "failure_stages"}
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +48,10 @@ def test_eval_writes_complete_results(tiny_policy, tmp_path):
     assert len(list((tmp_path / "e" / "videos").glob("*.mp4"))) == 1
     trace = json.loads(next((tmp_path / "e" / "traces").glob("*.json")).read_text())["trace"]
     assert {"u_act", "u_pred", "u", "v", "event", "replanned"} <= set(trace[0])
+    rows = [json.loads(line) for line in (tmp_path / "e" / "episodes.jsonl").read_text().splitlines()]
+    assert all(0.0 <= r["stage_progress"] <= 1.0 for r in rows)
+    failed = [r for r in rows if not r["success"]]
+    assert sum(res["failure_stages"].values()) == len(failed)
 
 
 def test_workers_give_the_same_results_as_one_process(tiny_policy, tmp_path):
@@ -111,3 +115,22 @@ def test_calibrate_on_the_runs_held_out_episodes(synthetic_data, tmp_path, capsy
     assert saved["source"].endswith("(held-out split)") and saved["tau_high"] >= saved["tau_low"]
     with pytest.raises(SystemExit, match="trained on"):
         held_out_episodes(str(run), episodes[:-1])
+
+
+def test_demo_calibrates_on_successful_rollouts_else_on_demos(tiny_policy, tmp_path):
+    """The demo's thresholds come from the policy's own successful validation rollouts; with none, from the
+    validation demonstrations (and the source recorded says which)."""
+    import dataclasses
+    import shutil
+
+    from pivla.cli.demo import _calibrate
+
+    demos = tiny_policy.parent / "data"
+    policy = load_policy(shutil.copytree(tiny_policy, tmp_path / "run"), device="cpu")  # the fixture stays as is
+    failed = [dataclasses.replace(ep, success=False) for ep in read_dataset(demos)]
+    write_episodes(tmp_path / "failed" / "r_rollouts.hdf5", failed)
+    _calibrate(policy, tmp_path / "failed", demos)
+    assert policy.calibration.source == str(demos)
+    write_episodes(tmp_path / "mixed" / "r_rollouts.hdf5", failed[:1] + read_dataset(demos)[:1])
+    _calibrate(policy, tmp_path / "mixed", demos)
+    assert policy.calibration.source == str(tmp_path / "mixed")

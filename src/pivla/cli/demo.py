@@ -1,7 +1,7 @@
 """``pivla demo``: the main job, end to end on the simulated twin.
 
-collect expert demos on pick_place -> train the default policy -> calibrate AURD on held-out validation
-demos -> evaluate AURD, fixed, ensemble and adahorizon in-distribution and under perturbations -> report.
+collect expert demos on pick_place -> train the default policy -> run it on validation seeds and calibrate
+AURD on its successful rollouts -> evaluate AURD, fixed, ensemble and adahorizon in-distribution and under perturbations -> report.
 Every stage writes into ``--out`` and is skipped when its output already exists, so an interrupted demo
 continues where it stopped. Training, validation and test episodes use disjoint seeds.
 """
@@ -64,8 +64,6 @@ def _stage(name: str, done: bool) -> bool:
 
 def run_demo(args: argparse.Namespace) -> int:
     from pivla.cli import main as cli
-    from pivla.control.calibrate import calibrate
-    from pivla.data.format import read_dataset
     from pivla.evaluation.report import write_report
     from pivla.evaluation.runner import EvalConfig, evaluate
     from pivla.policy import load_policy
@@ -103,9 +101,17 @@ def run_demo(args: argparse.Namespace) -> int:
                          ckpt_every=max(cfg.steps // 5, 1), value_refresh_every=max(cfg.steps // 5, 1),
                          warmup=min(200, cfg.steps // 10))
         timed("train", lambda: train(tc, resume=(run_dir / "checkpoints").exists()))
+    rollouts_dir = out / "data" / "val_rollouts"
+    if _stage("validation rollouts", (rollouts_dir / "rock_right_rollouts.hdf5").exists()):
+        # the policy's own closed loop on validation seeds: AURD's thresholds should describe the states
+        # *this policy* visits when it succeeds (METHOD.md), not the expert's
+        ec = EvalConfig(policy=str(run_dir), out=str(out / "eval" / "validation_rollouts"), executor="fixed",
+                        episodes=cfg.val_episodes, seed=args.seed + 1, realism=args.realism, workers=cfg.workers,
+                        videos=0, record=str(rollouts_dir))
+        timed("validation_rollouts", lambda: _report_eval(evaluate(ec, progress=False), "validation", "fixed"))
     if _stage("calibrate", (run_dir / "calibration.json").exists()):
         policy = load_policy(run_dir, device="cpu")
-        timed("calibrate", lambda: calibrate(policy, read_dataset(val_dir), source=str(val_dir)))
+        timed("calibrate", lambda: _calibrate(policy, rollouts_dir, val_dir))
     test_seed = args.seed + 1000
     for condition in cfg.conditions:
         for executor in EXECUTORS:
@@ -128,6 +134,20 @@ def run_demo(args: argparse.Namespace) -> int:
     log.info("timings (s): %s", timings)
     print(f"demo finished: report at {report}")
     return 0
+
+
+def _calibrate(policy, rollouts_dir: Path, demos_dir: Path) -> None:
+    """Thresholds from the successful validation rollouts; from the validation demonstrations when the
+    policy succeeded in none (a policy that never succeeds has no in-distribution signals of its own)."""
+    from pivla.control.calibrate import calibrate
+    from pivla.data.format import read_dataset
+
+    rollouts = read_dataset(rollouts_dir) if rollouts_dir.exists() else []
+    if any(ep.success for ep in rollouts):
+        calibrate(policy, rollouts, source=str(rollouts_dir))
+    else:
+        log.warning("no successful validation rollout: calibrating on the validation demonstrations")
+        calibrate(policy, read_dataset(demos_dir), source=str(demos_dir))
 
 
 def _report_eval(res: dict, condition: str, executor: str) -> None:

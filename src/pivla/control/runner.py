@@ -43,6 +43,7 @@ class EpisodeResult:
     plans: list[tuple[int, str]]
     step_times: list[float]
     seed: int | None = None
+    stage_progress: float | None = None  # fraction of the task's stages reached (twin), None if unknown
     episode: Episode | None = field(default=None, repr=False)
 
     @property
@@ -54,6 +55,7 @@ class EpisodeResult:
         horizons = [h for h, e in self.plans if e != "pause"]
         return {
             "success": self.success, "steps": self.steps, "executor": self.executor, "seed": self.seed,
+            "stage_progress": self.stage_progress,
             "plans": len(self.plans), "replans": ev["replan"], "prunes": ev["prune"], "pauses": ev["pause"],
             "mean_executed_horizon": float(np.mean(horizons)) if horizons else 0.0,
             # mean, not median: chunking executors query the policy on a few steps only
@@ -72,5 +74,5 @@ def run_episode(env: Any, policy: Any, executor: BaseExecutor, seed: int | None 
     return EpisodeResult(
         success=bool(ep.success), steps=len(ep), executor=executor.name, trace=list(executor.trace),
         plans=list(executor.plans), step_times=list(actor.step_times), seed=seed,
-        episode=ep if keep_episode else None,
+        stage_progress=ep.meta.get("stage_progress"), episode=ep if keep_episode else None,
     )

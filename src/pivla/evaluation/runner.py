@@ -177,7 +177,19 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict
         "mean_steps": steps / n if n else 0.0,
         "sim_wall_s": float(sum(r["wall_s"] for r in rows)),
         "failure_prediction": failure_prediction(rows, tau_high),
+        "failure_stages": failure_stages(rows),
     }
+
+
+def failure_stages(rows: list[dict]) -> dict[str, int]:
+    """How far failed episodes got: counts of their final stage progress (twin: 0.25 reached, 0.5 grasped,
+    0.75 moved), which says where a policy breaks down. Empty when the env does not report stages."""
+    counts: dict[str, int] = {}
+    for r in rows:
+        if not r["success"] and r.get("stage_progress") is not None:
+            key = f"{r['stage_progress']:.2f}"
+            counts[key] = counts.get(key, 0) + 1
+    return dict(sorted(counts.items()))
 
 
 # -- driver ----------------------------------------------------------------------------------------------
