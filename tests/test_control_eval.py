@@ -134,3 +134,13 @@ def test_demo_calibrates_on_successful_rollouts_else_on_demos(tiny_policy, tmp_p
     write_episodes(tmp_path / "mixed" / "r_rollouts.hdf5", failed[:1] + read_dataset(demos)[:1])
     _calibrate(policy, tmp_path / "mixed", demos)
     assert policy.calibration.source == str(tmp_path / "mixed")
+
+
+def test_calibration_with_episode_baseline_is_recorded_and_not_above_raw(tiny_policy):
+    from pivla.control.calibrate import CalibrationConfig
+
+    policy, demos = load_policy(tiny_policy, device="cpu"), read_dataset(tiny_policy.parent / "data")
+    raw, _ = calibrate(policy, demos, CalibrationConfig(), save=False)
+    rel, _ = calibrate(policy, demos, CalibrationConfig(pred_baseline="episode"), save=False)
+    assert raw.pred_baseline == "none" and rel.pred_baseline == "episode"
+    assert rel.tau_high <= raw.tau_high and rel.tau_low <= raw.tau_low

@@ -144,3 +144,28 @@ def test_adahorizon_uses_calibrated_thresholds_unless_given():
 def test_unknown_executor():
     with pytest.raises(ValueError, match="unknown executor"):
         make_executor("magic")
+
+
+def test_aurd_episode_baseline_ignores_a_constant_prediction_offset():
+    """A scene the encoder has never seen: every observation is 2.0 off its prediction. Raw U_pred replans
+    after every action; measured above the episode's floor only the first excess counts (then 0)."""
+    offset = {t: 2.0 for t in range(20)}
+    raw = make_executor("aurd")
+    run(raw, ScriptedPolicy(latent_error=offset), 10)
+    assert all(h == 1 for h, e in raw.plans)
+    rel = make_executor("aurd", pred_baseline="episode")
+    run(rel, ScriptedPolicy(latent_error=offset), 12)
+    assert rel.plans[0] == (1, "replan") and rel.plans[1:] == [(5, "complete"), (5, "complete")]
+    # a jump above the floor still replans
+    jump = make_executor("aurd", pred_baseline="episode")
+    run(jump, ScriptedPolicy(latent_error={**offset, 8: 4.0}), 10)
+    assert (2, "replan") in jump.plans
+
+
+def test_aurd_takes_the_baseline_from_the_calibration():
+    calib = Calibration(tau_low=0.2, tau_high=0.5, v_thresh=0.3, eta=0.7, pred_baseline="episode")
+    ex = make_executor("aurd")
+    run(ex, ScriptedPolicy(latent_error={t: 2.0 for t in range(20)}, calibration=calib), 12)
+    assert ex.plans[1:] == [(5, "complete"), (5, "complete")]
+    with pytest.raises(ValueError, match="pred_baseline"):
+        make_executor("aurd", pred_baseline="mean")

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from pivla.control import (
-    action_uncertainty, adahorizon, composite_uncertainty, decide_horizon, dequantize, ensemble_weights,
+    action_uncertainty, adahorizon, composite_uncertainty, decide_horizon, dequantize, ensemble_weights, surprise,
     temporal_ensemble, wilson_interval,
 )
 from pivla.model.tokenizer import bin_centers
@@ -85,3 +85,9 @@ def test_wilson_interval_values():
     assert wilson_interval(0, 10) == (0.0, pytest.approx(0.2775, abs=1e-4))
     assert wilson_interval(10, 10)[1] == pytest.approx(1.0)
     assert wilson_interval(0, 0) == (0.0, 1.0)
+
+
+def test_surprise_is_prediction_error_above_the_episode_floor():
+    assert surprise(0.3, None) == 0.3  # nothing seen yet: the raw error
+    assert surprise(0.5, 0.2) == pytest.approx(0.3)
+    assert surprise(0.1, 0.2) == 0.0  # never negative

@@ -36,6 +36,7 @@ class Calibration:
     source: str = ""
     act_low: float | None = None  # P(tau_low_pct) of U_act: AdaHorizon extends below it
     act_high: float | None = None  # P(tau_high_pct) of U_act: AdaHorizon replans above it
+    pred_baseline: str = "none"  # how U_pred was measured when calibrating; AURD uses the same by default
 
 
 def select_device(device: str = "auto") -> torch.device:

@@ -31,6 +31,9 @@ class DemoConfig:
     steps: int = 3600  # more, smaller updates: at 1800 x 64 the policy had not learned to localise objects
     batch_size: int = 32
     noise: float = 0.3  # DART: noise on executed expert actions, clean labels (recovery data)
+    # AURD measures U_pred above the episode's floor (control.math.surprise): with the raw U_pred of Eq. 14
+    # it replanned after every action in unseen environments (docs/results.md, session 3)
+    pred_baseline: str = "episode"
     conditions: tuple[str, ...] = ("in_distribution", "static_distractors", "unseen_env")
     levels: tuple[int, ...] = (0, 2, 4, 6)  # distraction levels for the Fig. 8 sweep
     level_executors: tuple[str, ...] = ("aurd", "fixed")
@@ -111,7 +114,7 @@ def run_demo(args: argparse.Namespace) -> int:
         timed("validation_rollouts", lambda: _report_eval(evaluate(ec, progress=False), "validation", "fixed"))
     if _stage("calibrate", (run_dir / "calibration.json").exists()):
         policy = load_policy(run_dir, device="cpu")
-        timed("calibrate", lambda: _calibrate(policy, rollouts_dir, val_dir))
+        timed("calibrate", lambda: _calibrate(policy, rollouts_dir, val_dir, cfg.pred_baseline))
     test_seed = args.seed + 1000
     for condition in cfg.conditions:
         for executor in EXECUTORS:
@@ -136,18 +139,19 @@ def run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _calibrate(policy, rollouts_dir: Path, demos_dir: Path) -> None:
+def _calibrate(policy, rollouts_dir: Path, demos_dir: Path, pred_baseline: str = "none") -> None:
     """Thresholds from the successful validation rollouts; from the validation demonstrations when the
     policy succeeded in none (a policy that never succeeds has no in-distribution signals of its own)."""
-    from pivla.control.calibrate import calibrate
+    from pivla.control.calibrate import CalibrationConfig, calibrate
     from pivla.data.format import read_dataset
 
+    cfg = CalibrationConfig(pred_baseline=pred_baseline)
     rollouts = read_dataset(rollouts_dir) if rollouts_dir.exists() else []
     if any(ep.success for ep in rollouts):
-        calibrate(policy, rollouts, source=str(rollouts_dir))
+        calibrate(policy, rollouts, cfg, source=str(rollouts_dir))
     else:
         log.warning("no successful validation rollout: calibrating on the validation demonstrations")
-        calibrate(policy, read_dataset(demos_dir), source=str(demos_dir))
+        calibrate(policy, read_dataset(demos_dir), cfg, source=str(demos_dir))
 
 
 def _report_eval(res: dict, condition: str, executor: str) -> None:

@@ -40,6 +40,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--tau-high-pct", type=float, default=95.0)
         parser.add_argument("--v-pct", type=float, default=10.0)
         parser.add_argument("--eta", type=float, default=0.7)
+        parser.add_argument("--pred-baseline", default="none", choices=["none", "episode"],
+                            help="episode: U_pred above the episode's smallest so far (AURD then uses the same)")
         parser.add_argument("--held-out", action="store_true",
                             help="--data is the run's training data: use only the episodes its split.json held out")
         parser.set_defaults(func=cmd_calibrate)
@@ -109,7 +111,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from pivla.data.format import read_dataset
 
     policy = load_policy(args.policy, device="cpu")
-    cfg = CalibrationConfig(args.tau_low_pct, args.tau_high_pct, args.v_pct, args.eta)
+    cfg = CalibrationConfig(args.tau_low_pct, args.tau_high_pct, args.v_pct, args.eta,
+                            pred_baseline=args.pred_baseline)
     episodes = read_dataset(args.data)
     source = str(args.data)
     if args.held_out:

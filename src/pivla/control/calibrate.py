@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pivla.control.math import action_uncertainty
+from pivla.control.math import action_uncertainty, surprise
 from pivla.data.format import Episode
 from pivla.policy import Calibration, Policy
 from pivla.training.checkpoint import CALIBRATION_FILE, atomic_write_json
@@ -30,6 +30,7 @@ class CalibrationConfig:
     eta: float = 0.7
     stride: int = 2  # every stride-th time step of each episode
     batch: int = 64
+    pred_baseline: str = "none"  # as AURD's option: "episode" measures U_pred above the episode's floor so far
 
 
 def _obs_at(ep: Episode, t: int) -> dict:
@@ -50,6 +51,7 @@ def calibration_signals(policy: Policy, episodes: list[Episode], cfg: Calibratio
         z = np.concatenate([policy.encode_batch([_obs_at(ep, t) for t in range(s, min(s + cfg.batch, T))])
                             for s in range(0, T, cfg.batch)])
         ts = list(range(0, T, cfg.stride))
+        floor: float | None = None  # smallest raw U_pred of the earlier samples (pred_baseline="episode")
         for s in range(0, len(ts), cfg.batch):
             chunk = ts[s : s + cfg.batch]
             out = policy.infer_batch([_obs_at(ep, t) for t in chunk])
@@ -60,6 +62,12 @@ def calibration_signals(policy: Policy, episodes: list[Episode], cfg: Calibratio
                 for k in range(1, H):
                     if t + k < T:
                         u_pred[k] = np.linalg.norm(z[t + k] - out["latents"][i, k - 1])
+                if cfg.pred_baseline == "episode":
+                    raw = u_pred.copy()
+                    for k in range(1, H):
+                        if np.isfinite(raw[k]):
+                            u_pred[k] = surprise(raw[k], floor)
+                            floor = raw[k] if floor is None else min(floor, raw[k])
                 uas.append(u_act[i])
                 ups.append(u_pred)
                 us.append(cfg.eta * u_act[i] + (1 - cfg.eta) * u_pred)
@@ -77,7 +85,8 @@ def thresholds(signals: dict[str, np.ndarray], cfg: CalibrationConfig, source: s
     u_act = signals["u_act"][np.isfinite(signals["u_act"])]
     act_low, act_high = (float(np.percentile(u_act, q)) for q in (cfg.tau_low_pct, cfg.tau_high_pct))
     return Calibration(tau_low=tau_low, tau_high=max(tau_high, tau_low), v_thresh=float(np.percentile(v, cfg.v_pct)),
-                       eta=cfg.eta, source=source, act_low=act_low, act_high=max(act_high, act_low))
+                       eta=cfg.eta, source=source, act_low=act_low, act_high=max(act_high, act_low),
+                       pred_baseline=cfg.pred_baseline)
 
 
 def calibrate(policy: Policy, episodes: list[Episode], cfg: CalibrationConfig | None = None, source: str = "",

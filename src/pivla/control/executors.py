@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from pivla.control.math import action_uncertainty, adahorizon, prediction_uncertainty, step_event, temporal_ensemble
+from pivla.control.math import (action_uncertainty, adahorizon, prediction_uncertainty, step_event, surprise,
+                               temporal_ensemble)
 
 GRIPPER = 6
 EVERYDAYVLA_EXTEND_BELOW, EVERYDAYVLA_REPLAN_ABOVE = 0.03, 0.06  # AdaHorizon's constants in its own code
@@ -191,13 +192,32 @@ class AURDExecutor(BaseExecutor):
     check: str = "before"
     horizon: int | None = None
     max_pauses: int = 3
+    pred_baseline: str | None = None  # "episode": U_pred above the episode's floor (math.surprise); None: as calibrated
     _plan: Plan | None = None
     _k: int = 0
     _pauses: int = 0
+    _pred_min: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.pred_baseline not in (None, "none", "episode"):
+            raise ValueError(f"pred_baseline must be 'none' or 'episode', got {self.pred_baseline!r}")
 
     def reset(self) -> None:
         super().reset()
-        self._plan, self._k, self._pauses = None, 0, 0
+        self._plan, self._k, self._pauses, self._pred_min = None, 0, 0, None
+
+    def _u_pred(self, z_obs: np.ndarray, predicted: np.ndarray, baseline: str) -> float:
+        raw = float(prediction_uncertainty(z_obs, predicted))
+        if baseline == "none":
+            return raw
+        u = surprise(raw, self._pred_min)
+        self._pred_min = raw if self._pred_min is None else min(self._pred_min, raw)
+        return u
+
+    def _baseline(self, policy) -> str:
+        if self.pred_baseline is not None:
+            return self.pred_baseline
+        return getattr(policy.calibration, "pred_baseline", "none") or "none"
 
     def _thresholds(self, policy) -> tuple[float, float, float, float]:
         c = policy.calibration
@@ -217,6 +237,7 @@ class AURDExecutor(BaseExecutor):
 
     def act(self, policy, obs: dict) -> np.ndarray:
         tau_low, tau_high, v_thresh, eta = self._thresholds(policy)
+        baseline = self._baseline(policy)
         H = self.horizon or policy.horizon
         ended = None
         z_obs = None
@@ -224,7 +245,7 @@ class AURDExecutor(BaseExecutor):
             z_obs = policy.encode(obs)
         if self.check == "after" and self._plan is not None and self._k > 0:
             k = self._k - 1  # the step just executed, now observed
-            u_pred = float(prediction_uncertainty(z_obs, self._plan.latents[k]))
+            u_pred = self._u_pred(z_obs, self._plan.latents[k], baseline)
             u = eta * self._plan.u_act[k] + (1 - eta) * u_pred
             event = step_event(u, self._plan.value(k), tau_low, tau_high, v_thresh)
             if event is not None:
@@ -238,7 +259,7 @@ class AURDExecutor(BaseExecutor):
             if self._plan is None:
                 self._plan, self._k, replanned, z_obs = Plan.from_output(policy.infer(obs)), 0, True, None
             k, p = self._k, self._plan
-            u_pred = 0.0 if k == 0 or z_obs is None else float(prediction_uncertainty(z_obs, p.latents[k - 1]))
+            u_pred = 0.0 if k == 0 or z_obs is None else self._u_pred(z_obs, p.latents[k - 1], baseline)
             u = eta * float(p.u_act[k]) + (1 - eta) * u_pred
             v = p.value(k)
             event = step_event(u, v, tau_low, tau_high, v_thresh) if self.check == "before" else None

@@ -31,6 +31,21 @@ def prediction_uncertainty(observed_latent: np.ndarray | None, predicted_latent:
     return np.linalg.norm(diff, axis=-1)
 
 
+def surprise(u_pred: float, episode_min: float | None) -> float:
+    """U_pred above the smallest prediction error seen so far in this episode (0 before any).
+
+    A deviation from Eq. 14, optional (AURD's ``pred_baseline="episode"``): in a scene that looks unlike the
+    training data (new table, light, camera) the target encoder's latents are off by a roughly constant
+    amount at every step, so raw U_pred exceeds thresholds calibrated in distribution all the time and AURD
+    replans after every action. Measured against the episode's own floor, U_pred keeps what AURD needs --
+    the world changing differently from the prediction -- and drops the constant offset. Only past steps
+    of the same episode are used, so it stays an online rule.
+    """
+    if episode_min is None:
+        return float(u_pred)
+    return max(0.0, float(u_pred) - episode_min)
+
+
 def composite_uncertainty(continuous: np.ndarray, dequantized: np.ndarray, observed_latent: np.ndarray | None,
                           predicted_latent: np.ndarray | None, eta: float = 0.7) -> np.ndarray | float:
     """Eqs. 13-14: U = eta * U_act + (1 - eta) * U_pred.
