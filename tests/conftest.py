@@ -23,3 +23,27 @@ def tiny_train_config(data, out, **overrides):
               ckpt_every=10, value_refresh_every=10, progress=False, model=model, threads=2)
     kw.update(overrides)
     return TrainConfig(**kw)
+
+
+def run_two_process(tmp_path, worker_source: str, cfg) -> dict:
+    """Run ``worker_source`` under ``torchrun --standalone --nproc_per_node 2`` (gloo, one thread each) with
+    the config as ``argv[1]``; the worker writes its findings as JSON to ``argv[2]``, returned here."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from pivla import config as cfgmod
+
+    torchrun = shutil.which("torchrun", path=str(Path(sys.executable).parent)) or shutil.which("torchrun")
+    if torchrun is None:
+        pytest.skip("torchrun not found")
+    (tmp_path / "cfg.json").write_text(cfgmod.dumps(cfg))
+    (tmp_path / "worker.py").write_text(worker_source)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", str(tmp_path / "worker.py"),
+                           str(tmp_path / "cfg.json"), str(tmp_path / "result.json")],
+                          capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads((tmp_path / "result.json").read_text())

@@ -144,3 +144,12 @@ def test_calibration_with_episode_baseline_is_recorded_and_not_above_raw(tiny_po
     rel, _ = calibrate(policy, demos, CalibrationConfig(pred_baseline="episode"), save=False)
     assert raw.pred_baseline == "none" and rel.pred_baseline == "episode"
     assert rel.tau_high <= raw.tau_high and rel.tau_low <= raw.tau_low
+
+
+def test_report_leaves_out_validation_rollouts(tmp_path):
+    from pivla.evaluation.report import find_evaluations
+
+    for cond, split in (("in_distribution", "test"), ("val_rollouts_eval", "validation")):
+        (tmp_path / cond / "fixed").mkdir(parents=True)
+        (tmp_path / cond / "fixed" / "results.json").write_text(json.dumps({"executor": "fixed", "split": split}))
+    assert list(find_evaluations(tmp_path)) == [("in_distribution", "fixed")]

@@ -7,12 +7,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import logging
-import os
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -20,7 +15,7 @@ import pytest
 from pivla import config as cfgmod
 from pivla.data.synthetic import make_synthetic_dataset
 from pivla.training.trainer import Trainer, TrainConfig, _fsdp_blocks, _fsdp_plugin
-from tests.conftest import tiny_train_config
+from tests.conftest import run_two_process, tiny_train_config
 
 WORKER = '''
 import dataclasses, json, sys
@@ -94,17 +89,7 @@ def _fsdp_config(tmp_path: Path):
 
 
 def test_two_process_fsdp_shards_saves_full_and_resumes(tmp_path):
-    torchrun = shutil.which("torchrun", path=str(Path(sys.executable).parent)) or shutil.which("torchrun")
-    if torchrun is None:
-        pytest.skip("torchrun not found")
-    (tmp_path / "cfg.json").write_text(cfgmod.dumps(_fsdp_config(tmp_path)))
-    (tmp_path / "worker.py").write_text(WORKER)
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", str(tmp_path / "worker.py"),
-                           str(tmp_path / "cfg.json"), str(tmp_path / "result.json")],
-                          capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    r = json.loads((tmp_path / "result.json").read_text())
+    r = run_two_process(tmp_path, WORKER, _fsdp_config(tmp_path))
     assert r["wrapped"] and r["blocks_wrapped"] and r["all_dtensor"] and r["still_sharded"]
     assert 0.45 < r["local_fraction"] < 0.6, r["local_fraction"]  # about half of every parameter per rank
     assert r["moved"] > 0 and len(r["losses"]) == 6

@@ -3,24 +3,17 @@ bit-identical parameters, and the adapters must have moved (so the check is not 
 
 from __future__ import annotations
 
-import json
-import os
-import shutil
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
 
 pytest.importorskip("transformers")
 pytest.importorskip("peft")
 
-from pivla import config as cfgmod  # noqa: E402
 from pivla.data.synthetic import make_synthetic_dataset  # noqa: E402
 from pivla.model.config import BackboneConfig, ModelConfig, TargetEncoderConfig  # noqa: E402
 from pivla.model.dinov2 import make_tiny_dinov2  # noqa: E402
 from pivla.model.hf import make_tiny_vlm  # noqa: E402
 from pivla.training.trainer import TrainConfig  # noqa: E402
+from tests.conftest import run_two_process  # noqa: E402
 
 WORKER = '''
 import json, sys
@@ -42,23 +35,13 @@ trainer.acc.end_training()  # destroys the process group; left to interpreter ex
 
 
 def test_two_process_training_keeps_ranks_identical(tmp_path):
-    torchrun = shutil.which("torchrun", path=str(Path(sys.executable).parent)) or shutil.which("torchrun")
-    if torchrun is None:
-        pytest.skip("torchrun not found")
     cfg = TrainConfig(
         data=str(make_synthetic_dataset(tmp_path / "data", 2, 12, 32)), out=str(tmp_path / "run"), steps=3,
         batch_size=2, warmup=1, lr=1e-2, threads=1, progress=False, log_every=1, eval_every=100, ckpt_every=100,
         model=ModelConfig(image_size=32, max_text_len=24,
                           backbone=BackboneConfig(name="hf", path=str(make_tiny_vlm(tmp_path / "vlm")), lora_rank=8),
                           target_encoder=TargetEncoderConfig(name="dinov2", path=str(make_tiny_dinov2(tmp_path / "dino")))))
-    (tmp_path / "cfg.json").write_text(cfgmod.dumps(cfg))
-    (tmp_path / "worker.py").write_text(WORKER)
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", str(tmp_path / "worker.py"),
-                           str(tmp_path / "cfg.json"), str(tmp_path / "result.json")],
-                          capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    result = json.loads((tmp_path / "result.json").read_text())
+    result = run_two_process(tmp_path, WORKER, cfg)
     assert result["world"] == 2
     assert result["max_diff"] == 0.0
     assert result["lora_b_abs"] > 0

@@ -108,9 +108,9 @@ def run_demo(args: argparse.Namespace) -> int:
     if _stage("validation rollouts", (rollouts_dir / "rock_right_rollouts.hdf5").exists()):
         # the policy's own closed loop on validation seeds: AURD's thresholds should describe the states
         # *this policy* visits when it succeeds (METHOD.md), not the expert's
-        ec = EvalConfig(policy=str(run_dir), out=str(out / "eval" / "validation_rollouts"), executor="fixed",
+        ec = EvalConfig(policy=str(run_dir), out=str(out / "data" / "val_rollouts_eval"), executor="fixed",
                         episodes=cfg.val_episodes, seed=args.seed + 1, realism=args.realism, workers=cfg.workers,
-                        videos=0, record=str(rollouts_dir))
+                        videos=0, record=str(rollouts_dir), split="validation")
         timed("validation_rollouts", lambda: _report_eval(evaluate(ec, progress=False), "validation", "fixed"))
     if _stage("calibrate", (run_dir / "calibration.json").exists()):
         policy = load_policy(run_dir, device="cpu")

@@ -32,6 +32,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                             help="executor option, e.g. horizon=3 (fixed), check=after (aurd), tau_high=0.2")
         parser.add_argument("--record", default=None, help="also write every rollout into this dataset directory")
+        parser.add_argument("--split", default="test", choices=["test", "validation"],
+                            help="validation: rollouts to calibrate on (pivla report leaves them out)")
         parser.set_defaults(func=cmd_eval)
     elif command == "calibrate":
         parser.add_argument("--policy", required=True, help="run directory")
@@ -79,7 +81,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                      executor=args.executor, episodes=args.episodes, seed=args.seed, perturb=args.perturb,
                      realism=args.realism, workers=args.workers, videos=args.videos, max_steps=args.max_steps,
                      executor_options=_parse_options(args.option), record=args.record,
-                     first_init_state=args.first_init_state)
+                     first_init_state=args.first_init_state, split=args.split)
     res = evaluate(cfg)
     lo, hi = res["ci95"]
     print(f"{args.executor}: success {res['success_rate']:.1%} [{lo:.1%}, {hi:.1%}] over {res['episodes']} episodes; "

@@ -27,11 +27,13 @@ def newcombe_difference(s1: int, n1: int, s2: int, n2: int) -> tuple[float, floa
 
 
 def find_evaluations(root: Path) -> dict[tuple[str, str], Path]:
-    """(condition, executor) -> evaluation directory."""
+    """(condition, executor) -> evaluation directory, test evaluations only (validation rollouts that
+    thresholds were calibrated on are not results)."""
     found = {}
     for res in sorted(root.rglob("results.json")):
-        d = res.parent
-        found[(d.parent.name, json.loads(res.read_text())["executor"])] = d
+        d, meta = res.parent, json.loads(res.read_text())
+        if meta.get("split", "test") == "test":
+            found[(d.parent.name, meta["executor"])] = d
     return found
 
 

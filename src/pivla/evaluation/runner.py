@@ -46,6 +46,7 @@ class EvalConfig:
     # LIBERO: episode e starts from official init state first_init_state + e (mod 50), whatever the worker,
     # so the test states are known and can be kept apart from the states demonstrations were collected on
     first_init_state: int = 0
+    split: str = "test"  # "validation" for the rollouts thresholds are calibrated on; reports show test only
 
 
 def job_seed(seed: int, task_index: int, episode: int) -> int:
@@ -166,7 +167,7 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict
         "executor": cfg.executor,
         "executor_options": cfg.executor_options,
         "env": cfg.env, "suite": cfg.suite, "perturb": cfg.perturb, "realism": cfg.realism, "seed": cfg.seed,
-        "policy": cfg.policy,
+        "policy": cfg.policy, "split": cfg.split,
         "mean_executed_horizon": float(np.mean(horizons)) if horizons else 0.0,
         "replans": sum(e == "replan" for _, e in plans),
         "prunes": sum(e == "prune" for _, e in plans),
