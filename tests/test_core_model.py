@@ -133,3 +133,14 @@ def test_keypoint_tokens_can_be_switched_off():
     assert not any("keypoints" in k or "kp_" in k for k in off.state_dict())
     batch = fake_batch()
     assert on(batch).continuous.shape == off(batch).continuous.shape == (3, CFG.chunk, CFG.action_dim)
+
+
+def test_spatial_softmax_reads_checkpoints_with_a_0d_temperature():
+    """The temperature is (1,) so FSDP can shard it; state dicts written when it was 0-d still load."""
+    from pivla.model.backbone import SpatialSoftmax
+
+    kp = SpatialSoftmax(channels=4, keypoints=2)
+    old = {k: v.clone() for k, v in kp.state_dict().items()}
+    old["log_temperature"] = torch.tensor(-1.5)
+    kp.load_state_dict(old)
+    assert kp.log_temperature.shape == (1,) and float(kp.log_temperature) == -1.5

@@ -66,7 +66,13 @@ class SpatialSoftmax(nn.Module):
     def __init__(self, channels: int, keypoints: int):
         super().__init__()
         self.detect = nn.Conv2d(channels, keypoints, 1)
-        self.log_temperature = nn.Parameter(torch.zeros(()))
+        self.log_temperature = nn.Parameter(torch.zeros(1))  # shape (1,), not (): FSDP cannot shard 0-d tensors
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        key = prefix + "log_temperature"
+        if key in state_dict and state_dict[key].dim() == 0:  # checkpoints written before it had shape (1,)
+            state_dict[key] = state_dict[key].reshape(1)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
         """(N, C, h, w) -> (N, K, 2)."""

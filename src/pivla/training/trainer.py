@@ -197,8 +197,7 @@ class Trainer:
         """Refuse what fully_shard cannot shard; transformer blocks become units unless the launcher named classes."""
         scalars = [n for n, p in self.model.named_parameters() if p.dim() == 0]
         if scalars:
-            raise ValueError(f"FSDP cannot shard scalar parameters {scalars}; with the small backbone, "
-                             "pass --model.backbone.keypoints 0")
+            raise ValueError(f"FSDP cannot shard 0-d parameters {scalars}: give them shape (1,)")
         plugin = self.acc.state.fsdp_plugin
         if plugin.transformer_cls_names_to_wrap is None:
             plugin.transformer_cls_names_to_wrap = _fsdp_blocks(self.model)
