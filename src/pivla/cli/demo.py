@@ -1,7 +1,8 @@
 """``pivla demo``: the main job, end to end on the simulated twin.
 
 collect expert demos on pick_place -> train the default policy -> run it on validation seeds and calibrate
-AURD on its successful rollouts -> evaluate AURD, fixed, ensemble and adahorizon in-distribution and under perturbations -> report.
+AURD on its successful rollouts -> evaluate AURD, fixed, ensemble and adahorizon in-distribution and under
+perturbations -> report.
 Every stage writes into ``--out`` and is skipped when its output already exists, so an interrupted demo
 continues where it stopped. Training, validation and test episodes use disjoint seeds.
 """

@@ -13,6 +13,7 @@ import logging
 import multiprocessing as mp
 import os
 import time
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -185,11 +186,8 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict
 def failure_stages(rows: list[dict]) -> dict[str, int]:
     """How far failed episodes got: counts of their final stage progress (twin: 0.25 reached, 0.5 grasped,
     0.75 moved), which says where a policy breaks down. Empty when the env does not report stages."""
-    counts: dict[str, int] = {}
-    for r in rows:
-        if not r["success"] and r.get("stage_progress") is not None:
-            key = f"{r['stage_progress']:.2f}"
-            counts[key] = counts.get(key, 0) + 1
+    counts = Counter(f"{r['stage_progress']:.2f}" for r in rows
+                     if not r["success"] and r.get("stage_progress") is not None)
     return dict(sorted(counts.items()))
 
 

@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pivla.model.config import ModelConfig
+from pivla.io import atomic_dir
 
 log = logging.getLogger(__name__)
 
@@ -418,9 +419,7 @@ def merge_run(run_dir: str | Path, out_dir: str | Path, device: str = "auto") ->
     backbone: HFBackbone = model.backbone
     src = Path(cfg.model.backbone.path)
     backbone.merge_lora()
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}."))
-    try:
+    with atomic_dir(out_dir) as tmp:
         backbone.vlm.save_pretrained(str(tmp / "backbone"))
         policy.text.tokenizer.save_pretrained(str(tmp / "backbone"))
         for extra in ("preprocessor_config.json", "processor_config.json"):
@@ -433,10 +432,6 @@ def merge_run(run_dir: str | Path, out_dir: str | Path, device: str = "auto") ->
         for name in (ck.STATS_FILE, ck.TOKENIZER_FILE, ck.CALIBRATION_FILE, ck.STATUS_FILE, "split.json"):
             if (run_dir / name).is_file():
                 shutil.copy2(run_dir / name, tmp / name)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 from collections import Counter
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -34,6 +33,8 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from pivla.io import atomic_dir
 
 MARKER = "pivla_openvla.json"
 FORMAT = "pivla_openvla/1"
@@ -471,9 +472,7 @@ def convert_openvla(src: str | os.PathLike, out: str | os.PathLike, max_shard_by
             towers = _tower_configs(source, cfg, text_cfg.hidden_size)
         except ValueError as e:
             raise ValueError(f"{src}: {e}") from e
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
-        try:
+        with atomic_dir(out) as tmp:
             text_cfg.save_pretrained(str(tmp))
             for sub, tower_cfg in towers.items():
                 tower_cfg.save_pretrained(str(tmp / sub))
@@ -486,8 +485,4 @@ def convert_openvla(src: str | os.PathLike, out: str | os.PathLike, max_shard_by
             meta = {"format": FORMAT, "image_sizes": cfg["image_sizes"], "source": str(src), "openvla_config": cfg,
                     "created": created, "mapping": mapping}
             (tmp / MARKER).write_text(json.dumps(meta, indent=1))
-            os.replace(tmp, out)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
     return out

@@ -11,14 +11,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 from safetensors.torch import load_file, save_file
 
-from pivla.io import atomic_path
+from pivla.io import atomic_dir, atomic_path
 
 MODEL_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
@@ -86,21 +85,13 @@ def save_checkpoint(run_dir: Path, step: int, model_state: dict[str, torch.Tenso
                     train_state: dict, keep: int = 2) -> Path:
     """Write ``checkpoints/step_<N>`` completely under a temporary name, then rename it into place."""
     ckpt_root = Path(run_dir) / "checkpoints"
-    ckpt_root.mkdir(parents=True, exist_ok=True)
     final = ckpt_root / f"step_{step:08d}"
-    tmp = Path(tempfile.mkdtemp(dir=ckpt_root, prefix=".tmp_"))
-    try:
+    with atomic_dir(final, prefix=".tmp_") as tmp:
         save_tensors(tmp / MODEL_FILE, model_state)
         opt_tensors, opt_meta = optimizer_to_tensors(optimizer_state)
         save_tensors(tmp / "optimizer.safetensors", opt_tensors)
         atomic_write_json(tmp / "optimizer.json", opt_meta)
         atomic_write_json(tmp / "train_state.json", {**train_state, "step": step})
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     for old in sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())[:-keep]:
         shutil.rmtree(old, ignore_errors=True)
     return final
