@@ -1,6 +1,7 @@
 """Evaluation end to end on the twin with a tiny trained policy: results.json, workers, report, collect --policy."""
 
 import functools
+import os
 import json
 
 import pytest
@@ -123,17 +124,18 @@ def test_demo_calibrates_on_successful_rollouts_else_on_demos(tiny_policy, tmp_p
     import dataclasses
     import shutil
 
-    from pivla.cli.demo import _calibrate
+    from pivla.evaluation.protocol import calibrate_on_rollouts
 
     demos = tiny_policy.parent / "data"
-    policy = load_policy(shutil.copytree(tiny_policy, tmp_path / "run"), device="cpu")  # the fixture stays as is
+    run = shutil.copytree(tiny_policy, tmp_path / "run")  # the fixture stays as is
     failed = [dataclasses.replace(ep, success=False) for ep in read_dataset(demos)]
     write_episodes(tmp_path / "failed" / "r_rollouts.hdf5", failed)
-    _calibrate(policy, tmp_path / "failed", demos)
-    assert policy.calibration.source == str(demos)
+    assert calibrate_on_rollouts(run, tmp_path / "failed", demos) == str(demos)
+    assert load_policy(run, device="cpu").calibration.source == str(demos)
     write_episodes(tmp_path / "mixed" / "r_rollouts.hdf5", failed[:1] + read_dataset(demos)[:1])
-    _calibrate(policy, tmp_path / "mixed", demos)
-    assert policy.calibration.source == str(tmp_path / "mixed")
+    calibrate_on_rollouts(run, tmp_path / "mixed", demos)
+    calib = load_policy(run, device="cpu").calibration
+    assert calib.source == str(tmp_path / "mixed") and calib.pred_baseline == "episode"
 
 
 def test_calibration_with_episode_baseline_is_recorded_and_not_above_raw(tiny_policy):
@@ -153,3 +155,48 @@ def test_report_leaves_out_validation_rollouts(tmp_path):
         (tmp_path / cond / "fixed").mkdir(parents=True)
         (tmp_path / cond / "fixed" / "results.json").write_text(json.dumps({"executor": "fixed", "split": split}))
     assert list(find_evaluations(tmp_path)) == [("in_distribution", "fixed")]
+
+
+def test_ablation_trains_calibrates_and_tabulates_variants(tiny_policy, tmp_path):
+    """`pivla ablate` in miniature: every trained variant goes through the demo's recipe (its own validation
+    rollouts, then calibration), the table has one row per variant, and a second run reuses everything."""
+    from pivla.evaluation.ablate import AblationConfig, run_ablation
+    from tests.conftest import tiny_train_config
+
+    data = tiny_policy.parent / "data"
+    cfg = AblationConfig(data=str(data), val=str(data), out=str(tmp_path / "abl"), steps=4, batch_size=4, tasks="0",
+                         episodes=1, val_episodes=1, workers=1, max_steps=8, variants=("full", "il_only", "fixed_h5"),
+                         model=tiny_train_config(data, tmp_path).model)
+    table = run_ablation(cfg)
+    for row in ("| full |", "| il_only |", "| fixed_h5 |"):
+        assert row in table
+    runs = tmp_path / "abl" / "runs"
+    il_loss = json.loads((runs / "il_only" / "config.json").read_text())["loss"]
+    assert not (il_loss["use_rl"] or il_loss["use_sp"] or il_loss["use_recon"])
+    for name in ("full", "il_only"):
+        assert (tmp_path / "abl" / "val_rollouts_eval" / name / "results.json").exists()
+        assert load_policy(runs / name, device="cpu").calibration.pred_baseline == "episode"
+    weights = (runs / "full" / "model.safetensors").stat().st_mtime_ns
+    assert run_ablation(cfg) == table
+    assert (runs / "full" / "model.safetensors").stat().st_mtime_ns == weights
+    assert (tmp_path / "abl" / "ablation.md").read_text() == table
+
+
+def test_eval_threads_respect_omp_and_in_process_eval_restores_them(tiny_policy, tmp_path, monkeypatch):
+    """An in-process evaluation must not leave its thread count behind: an ablation trains right after it,
+    and two processes each running two OpenMP threads on two cores slowed training ~5x."""
+    import torch
+
+    from pivla.evaluation.runner import eval_threads
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert eval_threads(1) == 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert eval_threads(1) == max(1, os.cpu_count() or 2)
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        _eval(tiny_policy, tmp_path / "ev", executor="fixed")
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

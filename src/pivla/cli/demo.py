@@ -68,10 +68,10 @@ def _stage(name: str, done: bool) -> bool:
 
 def run_demo(args: argparse.Namespace) -> int:
     from pivla.cli import main as cli
+    from pivla.evaluation.protocol import calibrate_on_rollouts, train_config, validation_rollouts
     from pivla.evaluation.report import write_report
     from pivla.evaluation.runner import EvalConfig, evaluate
-    from pivla.policy import load_policy
-    from pivla.training.trainer import TrainConfig, train
+    from pivla.training.trainer import train
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     cfg = QUICK if args.quick else DemoConfig()
@@ -100,22 +100,15 @@ def run_demo(args: argparse.Namespace) -> int:
     status = run_dir / "status.json"
     trained = status.exists() and json.loads(status.read_text()).get("done", False)
     if _stage("train", trained):
-        tc = TrainConfig(data=str(train_dir), out=str(run_dir), steps=cfg.steps, batch_size=cfg.batch_size,
-                         seed=args.seed, val_fraction=0.05, eval_every=max(cfg.steps // 5, 1),
-                         ckpt_every=max(cfg.steps // 5, 1), value_refresh_every=max(cfg.steps // 5, 1),
-                         warmup=min(200, cfg.steps // 10))
+        tc = train_config(str(train_dir), str(run_dir), cfg.steps, cfg.batch_size, args.seed)
         timed("train", lambda: train(tc, resume=(run_dir / "checkpoints").exists()))
     rollouts_dir = out / "data" / "val_rollouts"
     if _stage("validation rollouts", (rollouts_dir / "rock_right_rollouts.hdf5").exists()):
-        # the policy's own closed loop on validation seeds: AURD's thresholds should describe the states
-        # *this policy* visits when it succeeds (METHOD.md), not the expert's
-        ec = EvalConfig(policy=str(run_dir), out=str(out / "data" / "val_rollouts_eval"), executor="fixed",
-                        episodes=cfg.val_episodes, seed=args.seed + 1, realism=args.realism, workers=cfg.workers,
-                        videos=0, record=str(rollouts_dir), split="validation")
-        timed("validation_rollouts", lambda: _report_eval(evaluate(ec, progress=False), "validation", "fixed"))
+        timed("validation_rollouts", lambda: _report_eval(validation_rollouts(
+            run_dir, rollouts_dir, out / "data" / "val_rollouts_eval", cfg.val_episodes, args.seed + 1, args.realism,
+            cfg.workers), "validation", "fixed"))
     if _stage("calibrate", (run_dir / "calibration.json").exists()):
-        policy = load_policy(run_dir, device="cpu")
-        timed("calibrate", lambda: _calibrate(policy, rollouts_dir, val_dir, cfg.pred_baseline))
+        timed("calibrate", lambda: calibrate_on_rollouts(run_dir, rollouts_dir, val_dir, cfg.pred_baseline))
     test_seed = args.seed + 1000
     for condition in cfg.conditions:
         for executor in EXECUTORS:
@@ -138,21 +131,6 @@ def run_demo(args: argparse.Namespace) -> int:
     log.info("timings (s): %s", timings)
     print(f"demo finished: report at {report}")
     return 0
-
-
-def _calibrate(policy, rollouts_dir: Path, demos_dir: Path, pred_baseline: str = "none") -> None:
-    """Thresholds from the successful validation rollouts; from the validation demonstrations when the
-    policy succeeded in none (a policy that never succeeds has no in-distribution signals of its own)."""
-    from pivla.control.calibrate import CalibrationConfig, calibrate
-    from pivla.data.format import read_dataset
-
-    cfg = CalibrationConfig(pred_baseline=pred_baseline)
-    rollouts = read_dataset(rollouts_dir) if rollouts_dir.exists() else []
-    if any(ep.success for ep in rollouts):
-        calibrate(policy, rollouts, cfg, source=str(rollouts_dir))
-    else:
-        log.warning("no successful validation rollout: calibrating on the validation demonstrations")
-        calibrate(policy, read_dataset(demos_dir), cfg, source=str(demos_dir))
 
 
 def _report_eval(res: dict, condition: str, executor: str) -> None:

@@ -49,9 +49,15 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
         parser.set_defaults(func=cmd_calibrate)
     elif command == "ablate":
         parser.add_argument("--data", required=True, help="training dataset")
-        parser.add_argument("--val", required=True, help="validation dataset (calibration)")
+        parser.add_argument("--val", required=True,
+                            help="validation demonstrations (calibration falls back to them when a variant's "
+                                 "validation rollouts all fail)")
         parser.add_argument("--out", required=True)
-        parser.add_argument("--steps", type=int, default=3000)
+        parser.add_argument("--steps", type=int, default=3600)
+        parser.add_argument("--batch-size", type=int, default=32)
+        parser.add_argument("--train-seed", type=int, default=0)
+        parser.add_argument("--val-seed", type=int, default=1, help="seed of the validation rollouts")
+        parser.add_argument("--val-episodes", type=int, default=5, help="validation rollouts per task")
         parser.add_argument("--variants", default=None, help="comma-separated subset of the ablation variants")
         _add_eval_args(parser)
         parser.set_defaults(func=cmd_ablate)
@@ -129,8 +135,10 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     from pivla.evaluation.ablate import AblationConfig, run_ablation
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    cfg = AblationConfig(data=args.data, val=args.val, out=args.out, steps=args.steps, env=args.env, suite=args.suite,
-                         tasks=args.tasks, episodes=args.episodes, seed=args.seed, perturb=args.perturb,
+    cfg = AblationConfig(data=args.data, val=args.val, out=args.out, steps=args.steps, batch_size=args.batch_size,
+                         env=args.env, suite=args.suite, tasks=args.tasks, episodes=args.episodes, seed=args.seed,
+                         train_seed=args.train_seed, val_seed=args.val_seed, val_episodes=args.val_episodes,
+                         perturb=args.perturb,
                          realism=args.realism, workers=args.workers,
                          variants=tuple(args.variants.split(",")) if args.variants else None)
     table = run_ablation(cfg)

@@ -2,8 +2,9 @@
 
 Table 4 (action heads): full, discrete-only, continuous-only. Table 5 (loss terms): full, w/o L_SP,
 w/o L_RL, IL only. Table 6 (execution): the full model with AURD, AURD in the paper's literal check order,
-fixed horizon, ACT temporal ensembling and AdaHorizon. Every variant is trained with the same data, seed
-and steps, calibrated on the same validation set, and evaluated on the same test seeds.
+fixed horizon, ACT temporal ensembling and AdaHorizon. Every variant goes through the demo's recipe
+(:mod:`pivla.evaluation.protocol`) with the same data, seed and steps: trained, run on the same validation
+seeds, calibrated on its own successful validation rollouts, and evaluated on the same test seeds.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pivla.control.math import wilson_interval
+from pivla.model.config import ModelConfig
 from pivla.training.checkpoint import atomic_write_bytes
 
 log = logging.getLogger(__name__)
@@ -44,9 +46,13 @@ class AblationConfig:
     data: str
     val: str
     out: str
-    steps: int = 3000
-    batch_size: int = 64
-    seed: int = 0
+    steps: int = 3600  # the demo's training length and batch
+    batch_size: int = 32
+    seed: int = 1000  # first test seed
+    train_seed: int = 0
+    val_episodes: int = 5  # validation rollouts per task, for calibration
+    val_seed: int = 1  # the demo's validation seed (its validation demonstrations use the same)
+    pred_baseline: str = "episode"
     env: str = "tabletop"
     suite: str = "pick_place"
     tasks: str | None = None
@@ -55,34 +61,39 @@ class AblationConfig:
     realism: str = "ideal"
     workers: int = 2
     variants: tuple[str, ...] | None = None
+    max_steps: int | None = None  # per episode (default: the task's own limit)
+    model: ModelConfig | None = None  # default: the default policy
 
 
 def _train_and_calibrate(cfg: AblationConfig, name: str, loss_overrides: dict) -> Path:
-    from pivla.control.calibrate import calibrate
-    from pivla.data.format import read_dataset
-    from pivla.policy import load_policy
-    from pivla.training.losses import LossConfig
-    from pivla.training.trainer import TrainConfig, train
+    from pivla.evaluation.protocol import calibrate_on_rollouts, train_config, validation_rollouts
+    from pivla.training.trainer import train
 
     run = Path(cfg.out) / "runs" / name
     status = run / "status.json"
     if not (status.exists() and json.loads(status.read_text()).get("done")):
-        tc = TrainConfig(data=cfg.data, out=str(run), steps=cfg.steps, batch_size=cfg.batch_size, seed=cfg.seed,
-                         val_fraction=0.05, loss=dataclasses.replace(LossConfig(), **loss_overrides),
-                         eval_every=max(cfg.steps // 5, 1), ckpt_every=max(cfg.steps // 5, 1),
-                         value_refresh_every=max(cfg.steps // 5, 1), progress=False)
+        tc = train_config(cfg.data, str(run), cfg.steps, cfg.batch_size, cfg.train_seed, loss_overrides,
+                          progress=False, model=cfg.model)
         train(tc, resume=(run / "checkpoints").exists())
+    rollouts, rollouts_eval = Path(cfg.out) / "val_rollouts" / name, Path(cfg.out) / "val_rollouts_eval" / name
+    if not (rollouts_eval / "results.json").exists():
+        validation_rollouts(run, rollouts, rollouts_eval, cfg.val_episodes, cfg.val_seed, cfg.realism, cfg.workers,
+                            cfg.env, cfg.suite, cfg.tasks, cfg.max_steps)
     if not (run / "calibration.json").exists():
-        calibrate(load_policy(run, device="cpu"), read_dataset(cfg.val), source=cfg.val)
+        calibrate_on_rollouts(run, rollouts, Path(cfg.val), cfg.pred_baseline)
     return run
 
 
 def _evaluate(cfg: AblationConfig, run: Path, name: str, executor: str, options: dict) -> dict:
+    """Evaluate (or reuse a finished evaluation: an interrupted ablation continues where it stopped)."""
     from pivla.evaluation.runner import EvalConfig, evaluate
 
-    ec = EvalConfig(policy=str(run), out=str(Path(cfg.out) / "eval" / name), env=cfg.env, suite=cfg.suite,
-                    tasks=cfg.tasks, executor=executor, episodes=cfg.episodes, seed=cfg.seed + 1000,
-                    perturb=cfg.perturb, realism=cfg.realism, workers=cfg.workers, videos=0, executor_options=options)
+    out = Path(cfg.out) / "eval" / name
+    if (out / "results.json").exists():
+        return json.loads((out / "results.json").read_text())
+    ec = EvalConfig(policy=str(run), out=str(out), env=cfg.env, suite=cfg.suite, tasks=cfg.tasks, executor=executor,
+                    episodes=cfg.episodes, seed=cfg.seed, perturb=cfg.perturb, realism=cfg.realism,
+                    workers=cfg.workers, videos=0, max_steps=cfg.max_steps, executor_options=options)
     return evaluate(ec, progress=False)
 
 
@@ -112,7 +123,7 @@ def run_ablation(cfg: AblationConfig) -> str:
     header = ["| variant | success | 95% CI | episodes | mean horizon | replans | prunes | pauses |",
               "|---|---|---|---|---|---|---|---|"]
     lines = [f"# Ablations ({cfg.env}/{cfg.suite}, {cfg.episodes} episodes per task, perturb={cfg.perturb}, "
-             f"{cfg.steps} training steps, seed {cfg.seed})", ""]
+             f"{cfg.steps} training steps of {cfg.batch_size}, training seed {cfg.train_seed}, test seed {cfg.seed})", ""]
     for title, keys in [
         ("Table 4: action heads (AURD)", ["full", "discrete_only", "continuous_only"]),
         ("Table 5: loss terms (AURD)", ["full", "no_sp", "no_rl", "il_only"]),

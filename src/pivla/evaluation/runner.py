@@ -50,6 +50,14 @@ class EvalConfig:
     split: str = "test"  # "validation" for the rollouts thresholds are calibrated on; reports show test only
 
 
+def eval_threads(workers: int) -> int:
+    """Torch threads per worker: the cores shared out, never more than OMP_NUM_THREADS when it is set
+    (oversubscribed OpenMP threads spin against each other and slow everything on the machine)."""
+    share = max(1, (os.cpu_count() or 2) // workers)
+    limit = os.environ.get("OMP_NUM_THREADS", "")
+    return min(share, int(limit)) if limit.isdigit() and int(limit) > 0 else share
+
+
 def job_seed(seed: int, task_index: int, episode: int) -> int:
     return episode_seed(seed, task_index * 100_003 + episode)
 
@@ -235,7 +243,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     if done:
         log.info("resuming: %d episodes already done, %d to go", len(done), len(jobs))
     workers = max(1, min(cfg.workers, len(jobs)))
-    threads = max(1, (os.cpu_count() or 2) // workers)
+    threads = eval_threads(workers)
     bar = tqdm(total=len(jobs), desc=f"eval {cfg.executor}", unit="ep", disable=not progress, leave=False)
     recorded = []
     with open(log_path, "a") as logf:
@@ -252,9 +260,15 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
             bar.update(1)
 
         if workers == 1:
-            _init_worker(cfg, threads)
-            for job in jobs:
-                consume(_run_job(job))
+            import torch
+
+            caller_threads = torch.get_num_threads()
+            try:
+                _init_worker(cfg, threads)
+                for job in jobs:
+                    consume(_run_job(job))
+            finally:  # in-process: the caller (e.g. an ablation that trains next) keeps its own setting
+                torch.set_num_threads(caller_threads)
         elif jobs:
             with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(cfg, threads)) as pool:
                 for row in pool.imap_unordered(_run_job, jobs):
