@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from pivla.control import make_executor
+from pivla.control.math import action_uncertainty
 from pivla.control.math import adahorizon
 from pivla.policy import Calibration
 
@@ -30,7 +31,7 @@ class ScriptedPolicy:
         deq = a.copy()
         deq[:, 2] = self.u_act * 7  # mean |cont - deq| over 7 dims = u_act
         return {"actions": a, "actions_normalized": a / 10, "continuous_normalized": a, "dequantized": deq,
-                "values": self.values, "latents": np.zeros((8, 4)), "value_now": np.float32(1)}
+                "u_act": action_uncertainty(a, deq), "values": self.values, "latents": np.zeros((8, 4)), "value_now": np.float32(1)}
 
     def encode(self, obs):
         z = np.zeros(4)

@@ -103,3 +103,23 @@ def test_cli_flags_reach_nested_config(tmp_path, synthetic_data, capsys):
     assert cfg["model"]["backbone"]["d_model"] == 32 and cfg["loss"]["alpha"] == 0.2 and cfg["batch_size"] == 4
     assert main(["info", str(out)]) == 0
     assert "step 2/2" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("head", ["continuous", "discrete"])
+def test_one_head_policy_executes_its_head_and_has_no_action_uncertainty(tmp_path, synthetic_data, head):
+    """Table 4's one-head variants: the trained head is executed, and U_act (the disagreement of two trained
+    heads, Eq. 13) is zero instead of a comparison with the untrained head."""
+    from pivla.data.format import read_dataset
+    from pivla.training.losses import LossConfig
+
+    other = "use_discrete" if head == "continuous" else "use_continuous"
+    run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, loss=LossConfig(**{other: False})))
+    policy = load_policy(run, device="cpu")
+    ep = read_dataset(synthetic_data)[0]
+    obs = {k: v[0] for k, v in ep.obs.items()} | {"instruction": ep.instruction}
+    out = policy.infer(obs)
+    primary = out["continuous_normalized"] if head == "continuous" else out["dequantized"]
+    assert policy.action_head == head and np.allclose(out["actions_normalized"], primary)
+    assert out["u_act"].shape == (policy.chunk,) and not out["u_act"].any()
+    both = load_policy(train(tiny_train_config(synthetic_data, tmp_path / "both", steps=2)), device="cpu").infer(obs)
+    assert both["u_act"].min() > 0

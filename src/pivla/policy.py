@@ -18,6 +18,7 @@ from pivla.data.dataset import proprio_vector, resize_images
 from pivla.data.normalize import NormStats
 from pivla.data.text import WordTokenizer, load_text_tokenizer
 from pivla.data.transforms import images_to_tensor
+from pivla.control.math import action_uncertainty
 from pivla.model.cms import CMSModel
 from pivla.training import checkpoint as ck
 
@@ -48,7 +49,7 @@ def select_device(device: str = "auto") -> torch.device:
 class Policy:
     def __init__(self, model: CMSModel, stats: NormStats, text: WordTokenizer, run_dir: Path | None = None,
                  calibration: Calibration | None = None, device: torch.device | None = None,
-                 action_head: str = "continuous"):
+                 action_head: str = "continuous", both_heads: bool = True):
         self.model = model.eval()
         self.cfg = model.cfg
         self.stats = stats
@@ -60,6 +61,9 @@ class Policy:
         self.chunk, self.horizon = self.cfg.chunk, self.cfg.horizon
         # which head's actions are executed: the continuous one, unless the run trained only the discrete one
         self.action_head = action_head
+        # U_act (Eq. 13) is the disagreement of two trained heads; a one-head ablation has none, and comparing
+        # with the untrained head would feed AURD noise
+        self.both_heads = both_heads
 
     # -- transforms ------------------------------------------------------------------------------------
     def _check_obs(self, obs: dict) -> None:
@@ -109,6 +113,7 @@ class Policy:
             "actions_normalized": primary,
             "continuous_normalized": cont,
             "dequantized": deq,
+            "u_act": action_uncertainty(cont, deq) if self.both_heads else np.zeros(cont.shape[:2]),
             "discrete_probs": probs.cpu().numpy(),
             "latents": out.latents.float().cpu().numpy(),
             "values": out.values.float().cpu().numpy(),
@@ -117,7 +122,8 @@ class Policy:
 
     def infer(self, obs: dict) -> dict[str, np.ndarray]:
         """One observation -> actions (K,7) un-normalised from the primary head, actions_normalized (K,7),
-        continuous_normalized and dequantized (K,7) (both heads, normalized; Eq. 12 for the latter),
+        continuous_normalized and dequantized (K,7) (both heads, normalized; Eq. 12 for the latter), u_act (K,)
+        (Eq. 13; zero for a policy trained with one head),
         discrete_probs (K,7,256), latents (K,d_z) predicted next-observation latents, values (H,),
         value_now ()."""
         return {k: v[0] for k, v in self.infer_batch([obs]).items()}
@@ -154,4 +160,5 @@ def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0) -> 
     if (run_dir / ck.CALIBRATION_FILE).exists():
         calib = Calibration(**ck.read_json(run_dir / ck.CALIBRATION_FILE))
     head = "continuous" if cfg.loss.use_continuous else "discrete"
-    return Policy(model.to(dev), stats, text, run_dir, calib, dev, action_head=head)
+    both = cfg.loss.use_continuous and cfg.loss.use_discrete
+    return Policy(model.to(dev), stats, text, run_dir, calib, dev, action_head=head, both_heads=both)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pivla.control.math import action_uncertainty, surprise
+from pivla.control.math import surprise
 from pivla.data.format import Episode
 from pivla.policy import Calibration, Policy
 from pivla.training.checkpoint import CALIBRATION_FILE, atomic_write_json
@@ -55,7 +55,7 @@ def calibration_signals(policy: Policy, episodes: list[Episode], cfg: Calibratio
         for s in range(0, len(ts), cfg.batch):
             chunk = ts[s : s + cfg.batch]
             out = policy.infer_batch([_obs_at(ep, t) for t in chunk])
-            u_act = action_uncertainty(out["continuous_normalized"], out["dequantized"])[:, :H]
+            u_act = out["u_act"][:, :H]
             for i, t in enumerate(chunk):
                 u_pred = np.full(H, np.nan)
                 u_pred[0] = 0.0

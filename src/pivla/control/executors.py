@@ -16,8 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from pivla.control.math import (action_uncertainty, adahorizon, prediction_uncertainty, step_event, surprise,
-                               temporal_ensemble)
+from pivla.control.math import adahorizon, prediction_uncertainty, step_event, surprise, temporal_ensemble
 
 GRIPPER = 6
 EVERYDAYVLA_EXTEND_BELOW, EVERYDAYVLA_REPLAN_ABOVE = 0.03, 0.06  # AdaHorizon's constants in its own code
@@ -42,7 +41,7 @@ class Plan:
         return cls(
             normalized=out["actions_normalized"],
             actions=out["actions"],
-            u_act=action_uncertainty(out["continuous_normalized"], out["dequantized"]),
+            u_act=out["u_act"],
             values=out["values"],
             latents=out["latents"],
         )
