@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pivla.control.math import wilson_interval
+from pivla.evaluation.report import newcombe_difference
 from pivla.model.config import ModelConfig
 from pivla.training.checkpoint import atomic_write_bytes
 
@@ -97,10 +98,28 @@ def _evaluate(cfg: AblationConfig, run: Path, name: str, executor: str, options:
     return evaluate(ec, progress=False)
 
 
-def _row(label: str, r: dict) -> str:
+def _rate(r: dict) -> str:
     lo, hi = wilson_interval(r["successes"], r["episodes"])
-    return (f"| {label} | {100 * r['success_rate']:.1f}% | [{100 * lo:.1f}, {100 * hi:.1f}] | {r['episodes']} | "
-            f"{r['mean_executed_horizon']:.2f} | {r['replans']} | {r['prunes']} | {r['pauses']} |")
+    return f"{100 * r['success_rate']:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+
+def _diff(r: dict, ref: dict | None) -> str:
+    """Difference in points to the reference row with its Newcombe 95% interval."""
+    if ref is None or r is ref:
+        return ""
+    d, lo, hi = newcombe_difference(r["successes"], r["episodes"], ref["successes"], ref["episodes"])
+    return f"{100 * d:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}]"
+
+
+def _model_row(name: str, aurd: dict, fixed: dict | None, ref: dict | None) -> str:
+    fixed_cell = _rate(fixed) if fixed else ""
+    return (f"| {name} | {_rate(aurd)} | {fixed_cell} | {_diff(aurd, ref)} | {aurd['episodes']} | "
+            f"{aurd['mean_executed_horizon']:.2f} |")
+
+
+def _exec_row(name: str, r: dict, ref: dict | None) -> str:
+    return (f"| {name} | {_rate(r)} | {_diff(r, ref)} | {r['episodes']} | {r['mean_executed_horizon']:.2f} | "
+            f"{r['replans']} | {r['prunes']} | {r['pauses']} |")
 
 
 def run_ablation(cfg: AblationConfig) -> str:
@@ -108,30 +127,35 @@ def run_ablation(cfg: AblationConfig) -> str:
     unknown = wanted - set(TRAIN_VARIANTS) - set(EXEC_VARIANTS)
     if unknown:
         raise SystemExit(f"unknown ablation variants {sorted(unknown)}; known: {sorted({*TRAIN_VARIANTS, *EXEC_VARIANTS})}")
-    results: dict[str, dict] = {}
+    models: dict[str, tuple[dict, dict]] = {}  # variant -> (AURD, fixed H=5) results
     for name, (_, overrides) in TRAIN_VARIANTS.items():
         if name in wanted or (name == "full" and wanted & set(EXEC_VARIANTS)):
             log.info("[ablate] %s: train + calibrate", name)
             run = _train_and_calibrate(cfg, name, overrides)
-            if name in wanted:
-                results[name] = _evaluate(cfg, run, f"model_{name}", "aurd", {})
+            if name in wanted:  # fixed horizon too: the model's quality apart from AURD's signals
+                models[name] = (_evaluate(cfg, run, f"model_{name}", "aurd", {}),
+                                _evaluate(cfg, run, f"model_{name}_fixed_h5", "fixed", {"horizon": 5}))
     full_run = Path(cfg.out) / "runs" / "full"
+    execs: dict[str, dict] = {}
     for name, (executor, options) in EXEC_VARIANTS.items():
         if name in wanted:
             log.info("[ablate] full model with %s", name)
-            results[f"exec_{name}"] = _evaluate(cfg, full_run, f"exec_{name}", executor, options)
-    header = ["| variant | success | 95% CI | episodes | mean horizon | replans | prunes | pauses |",
-              "|---|---|---|---|---|---|---|---|"]
+            execs[name] = _evaluate(cfg, full_run, f"exec_{name}", executor, options)
     lines = [f"# Ablations ({cfg.env}/{cfg.suite}, {cfg.episodes} episodes per task, perturb={cfg.perturb}, "
-             f"{cfg.steps} training steps of {cfg.batch_size}, training seed {cfg.train_seed}, test seed {cfg.seed})", ""]
-    for title, keys in [
-        ("Table 4: action heads (AURD)", ["full", "discrete_only", "continuous_only"]),
-        ("Table 5: loss terms (AURD)", ["full", "no_sp", "no_rl", "il_only"]),
-        ("Table 6: execution strategy (full model)", [f"exec_{k}" for k in EXEC_VARIANTS]),
-    ]:
-        rows = [_row(k.removeprefix("exec_"), results[k]) for k in keys if k in results]
+             f"{cfg.steps} training steps of {cfg.batch_size}, training seed {cfg.train_seed}, test seed {cfg.seed})",
+             "", "Success with 95% Wilson intervals; differences in points with Newcombe 95% intervals.", ""]
+    model_header = ["| variant | AURD | fixed H=5 | AURD - full | episodes | AURD mean horizon |", "|---|---|---|---|---|---|"]
+    ref = models.get("full", (None, None))[0]
+    for title, keys in [("Table 4: action heads", ["full", "discrete_only", "continuous_only"]),
+                        ("Table 5: loss terms", ["full", "no_sp", "no_rl", "il_only"])]:
+        rows = [_model_row(k, *models[k], ref) for k in keys if k in models]
         if rows:
-            lines += [f"## {title}", "", *header, *rows, ""]
+            lines += [f"## {title}", "", *model_header, *rows, ""]
+    if execs:
+        fixed_ref = execs.get("fixed_h5")
+        lines += ["## Table 6: execution strategy (full model)", "",
+                  "| executor | success | - fixed H=5 | episodes | mean horizon | replans | prunes | pauses |",
+                  "|---|---|---|---|---|---|---|---|", *[_exec_row(k, r, fixed_ref) for k, r in execs.items()], ""]
     table = "\n".join(lines)
     atomic_write_bytes(Path(cfg.out) / "ablation.md", table.encode())
     return table
