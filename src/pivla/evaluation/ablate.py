@@ -111,9 +111,8 @@ def _diff(r: dict, ref: dict | None) -> str:
     return f"{100 * d:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}]"
 
 
-def _model_row(name: str, aurd: dict, fixed: dict | None, ref: dict | None) -> str:
-    fixed_cell = _rate(fixed) if fixed else ""
-    return (f"| {name} | {_rate(aurd)} | {fixed_cell} | {_diff(aurd, ref)} | {aurd['episodes']} | "
+def _model_row(name: str, aurd: dict, fixed: dict, ref: dict | None) -> str:
+    return (f"| {name} | {_rate(aurd)} | {_rate(fixed)} | {_diff(aurd, ref)} | {aurd['episodes']} | "
             f"{aurd['mean_executed_horizon']:.2f} |")
 
 
