@@ -14,11 +14,11 @@ import numpy as np
 import torch
 
 from pivla import config as cfgmod
+from pivla.control.math import action_uncertainty
 from pivla.data.dataset import proprio_vector, resize_images
 from pivla.data.normalize import NormStats
 from pivla.data.text import WordTokenizer, load_text_tokenizer
 from pivla.data.transforms import images_to_tensor
-from pivla.control.math import action_uncertainty
 from pivla.model.cms import CMSModel
 from pivla.training import checkpoint as ck
 

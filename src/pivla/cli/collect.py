@@ -6,8 +6,6 @@ from __future__ import annotations
 import argparse
 import functools
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 log = logging.getLogger("pivla.collect")

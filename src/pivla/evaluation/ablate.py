@@ -9,7 +9,6 @@ seeds, calibrated on its own successful validation rollouts, and evaluated on th
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 from dataclasses import dataclass

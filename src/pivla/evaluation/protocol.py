@@ -1,4 +1,4 @@
-"""The recipe that turns demonstrations into an evaluated-ready policy, shared by ``pivla demo`` and
+"""The recipe that turns demonstrations into a policy ready to evaluate, shared by ``pivla demo`` and
 ``pivla ablate`` so that their numbers mean the same thing: the same training settings, then the policy's
 own closed loop on validation seeds, then AURD's thresholds from its successful validation rollouts
 (METHOD.md: thresholds describe the states *this policy* visits when it succeeds, not the expert's).
@@ -9,12 +9,17 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from pivla.model.config import ModelConfig
+    from pivla.training.trainer import TrainConfig
 
 log = logging.getLogger(__name__)
 
 
 def train_config(data: str, out: str, steps: int, batch_size: int, seed: int, loss_overrides: dict | None = None,
-                 progress: bool = True, model=None):
+                 progress: bool = True, model: ModelConfig | None = None) -> TrainConfig:
     """The demo's training settings: a 5% validation split, five evaluations, checkpoints and value refreshes
     per run, warm-up of at most 200 steps."""
     from pivla.model.config import ModelConfig

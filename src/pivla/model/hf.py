@@ -31,8 +31,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pivla.model.config import ModelConfig
 from pivla.io import atomic_dir
+from pivla.model.config import ModelConfig
 
 log = logging.getLogger(__name__)
 
