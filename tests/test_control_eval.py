@@ -93,6 +93,23 @@ def test_rollouts_are_recorded_with_failures_for_training(tiny_policy, tmp_path)
     assert all(len(e.rewards) == len(e) for e in eps)
 
 
+def test_recordings_survive_an_interrupted_evaluation(tiny_policy, tmp_path):
+    """A resumed evaluation records every episode, not only those run after the resume; in episode order."""
+    import numpy as np
+
+    out, rec = tmp_path / "e", tmp_path / "rec"
+    cfg = EvalConfig(policy=str(tiny_policy), out=str(out), tasks="0", executor="fixed", episodes=1, seed=7,
+                     max_steps=6, videos=0, record=str(rec))
+    evaluate(cfg, progress=False)  # "interrupted" after one episode
+    first = read_dataset(rec)
+    cfg.episodes = 3
+    evaluate(cfg, progress=False)
+    eps = read_dataset(rec)
+    assert [e.meta["seed"] for e in eps] == [r["seed"] for r in map(json.loads, (out / "episodes.jsonl").read_text().splitlines())]
+    assert len(eps) == 3 and np.array_equal(eps[0].actions, first[0].actions)
+    assert len(list((rec / ".parts").glob("*.hdf5"))) == 3  # kept for later resumes, not read as data
+
+
 def test_auroc_hand_computed():
     assert auroc([0.9, 0.8, 0.1], [1, 1, 0]) == 1.0
     assert auroc([0.1, 0.8, 0.9], [1, 0, 0]) == 0.0

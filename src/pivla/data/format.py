@@ -173,13 +173,15 @@ def read_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> 
 
 
 def dataset_files(root: str | Path) -> list[Path]:
-    """The ``.hdf5`` files of a dataset directory (or the file itself), sorted for reproducibility."""
+    """The ``.hdf5`` files of a dataset directory (or the file itself), sorted for reproducibility. Hidden
+    files and folders (e.g. an evaluation's per-episode recordings, merged beside them) are not part of it."""
     root = Path(root)
     if root.is_file():
         return [root]
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset directory does not exist")
-    files = sorted(p for p in root.rglob("*.hdf5") if not p.name.startswith("."))
+    files = sorted(p for p in root.rglob("*.hdf5")
+                   if not any(part.startswith(".") for part in p.relative_to(root).parts))
     if not files:
         raise DatasetError(f"{root}: no .hdf5 files found")
     return files

@@ -25,6 +25,7 @@ from pivla.envs.rollout import episode_seed
 from pivla.training.checkpoint import atomic_write_json
 
 log = logging.getLogger(__name__)
+PARTS_DIR = ".parts"  # one file per recorded episode, merged per task at the end; hidden from dataset readers
 
 
 @dataclass
@@ -245,14 +246,13 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     workers = max(1, min(cfg.workers, len(jobs)))
     threads = eval_threads(workers)
     bar = tqdm(total=len(jobs), desc=f"eval {cfg.executor}", unit="ep", disable=not progress, leave=False)
-    recorded = []
     with open(log_path, "a") as logf:
         def consume(row: dict) -> None:
             ep, video = row.pop("_episode", None), row.pop("_video", False)
             if ep is not None and video:
                 _write_video(out / "videos", row, ep)
-            if ep is not None and cfg.record:
-                recorded.append((row["task"], ep))
+            if ep is not None and cfg.record:  # before the row: a logged episode always has its recording
+                _record_part(Path(cfg.record), row, ep)
             atomic_write_json(out / "traces" / f"{row['task']}_{row['episode']:03d}.json", row)
             logf.write(json.dumps(row) + "\n")
             logf.flush()
@@ -274,9 +274,9 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
                 for row in pool.imap_unordered(_run_job, jobs):
                     consume(row)
     bar.close()
-    if cfg.record and recorded:
-        _write_rollouts(Path(cfg.record), recorded)
     rows = sorted(done.values(), key=_key)
+    if cfg.record:
+        _merge_rollouts(Path(cfg.record), rows)
     results = aggregate(rows, cfg, tau_high)
     atomic_write_json(out / "results.json", results)
     return results
@@ -292,11 +292,30 @@ def _write_video(folder: Path, row: dict, ep: Any) -> None:
     write_mp4(folder / f"{row['task']}_{row['episode']:03d}_{tag}.mp4", frames, 10)
 
 
-def _write_rollouts(root: Path, recorded: list[tuple[str, Any]]) -> None:
+def _part_path(root: Path, row: dict) -> Path:
+    return root / PARTS_DIR / f"{row['task']}_{row['episode']:04d}.hdf5"
+
+
+def _record_part(root: Path, row: dict, ep: Any) -> None:
+    """Write one finished episode at once (atomically), so an interrupted evaluation keeps its recordings."""
     from pivla.data.format import write_episodes
 
+    write_episodes(_part_path(root, row), [ep])
+
+
+def _merge_rollouts(root: Path, rows: list[dict]) -> None:
+    """``<task>_rollouts.hdf5`` per task from the per-episode parts, in episode order (so the file does not
+    depend on which worker finished first). The parts stay (hidden from dataset readers): a later resume with
+    more episodes rebuilds the files from them."""
+    from pivla.data.format import read_episodes, write_episodes
+
     by_task: dict[str, list] = {}
-    for task, ep in recorded:
-        by_task.setdefault(task, []).append(ep)
+    for row in rows:
+        part = _part_path(root, row)
+        if not part.exists():
+            raise FileNotFoundError(
+                f"{part}: episode {row['episode']} of {row['task']} is in episodes.jsonl but its recording is "
+                "missing (evaluated without --record, or by an older version); evaluate into a new --out to record it")
+        by_task.setdefault(row["task"], []).extend(read_episodes(part))
     for task, eps in by_task.items():
         write_episodes(root / f"{task}_rollouts.hdf5", eps)
