@@ -144,3 +144,22 @@ def test_spatial_softmax_reads_checkpoints_with_a_0d_temperature():
     old["log_temperature"] = torch.tensor(-1.5)
     kp.load_state_dict(old)
     assert kp.log_temperature.shape == (1,) and float(kp.log_temperature) == -1.5
+
+
+def test_residual_stages_keep_resolution_and_feed_keypoints():
+    """Residual blocks add parameters but not stages (same grid); keypoints can read a finer stage; the
+    default (no blocks) has exactly the state-dict keys it always had, so old checkpoints load."""
+    from pivla.model.backbone import ConvEncoder
+
+    plain, deep = ConvEncoder((16, 16, 32, 32), 32), ConvEncoder((16, 16, 32, 32), 32, (0, 1, 1, 0))
+    x = torch.rand(2, 1, 3, 32, 32)
+    assert [s.shape for s in plain.stages(x)] == [s.shape for s in deep.stages(x)]
+    assert set(plain.state_dict()) < set(deep.state_dict())
+    assert all(k.startswith("net.") for k in plain.state_dict())
+    with pytest.raises(ValueError, match="one count per stage"):
+        ConvEncoder((16, 16, 32, 32), 32, (1, 1))
+    fine = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32),
+                                                              res_blocks=(0, 1, 1, 0), keypoint_stage=-3))
+    m = CMSModel(fine, vocab_size=10)
+    assert m.backbone.keypoints.detect.in_channels == 16
+    assert m(fake_batch()).continuous.shape == (3, CFG.chunk, CFG.action_dim)

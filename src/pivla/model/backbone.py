@@ -21,11 +21,14 @@ class ConvEncoder(nn.Module):
     """A small strided CNN shared by all cameras: image -> grid of feature tokens.
 
     Four stride-2 stages take a 96-px image to a 6x6 grid; GroupNorm (not BatchNorm) keeps train and
-    inference identical at batch 1 and makes an EMA copy a valid target encoder.
+    inference identical at batch 1 and makes an EMA copy a valid target encoder. ``res_blocks[i]`` residual
+    3x3 convolutions at stage i's resolution add depth without losing resolution.
     """
 
-    def __init__(self, channels: tuple[int, ...], image_size: int):
+    def __init__(self, channels: tuple[int, ...], image_size: int, res_blocks: tuple[int, ...] = ()):
         super().__init__()
+        if len(res_blocks) not in (0, len(channels)):
+            raise ValueError(f"res_blocks {res_blocks} must give one count per stage of {channels}")
         layers: list[nn.Module] = []
         c_in = 3
         for i, c in enumerate(channels):
@@ -33,6 +36,10 @@ class ConvEncoder(nn.Module):
             layers += [nn.Conv2d(c_in, c, k, stride=2, padding=k // 2), nn.GroupNorm(8, c), nn.GELU()]
             c_in = c
         self.net = nn.Sequential(*layers)
+        counts = res_blocks or (0,) * len(channels)
+        self.res = nn.ModuleList(
+            nn.ModuleList(_ResBlock(c) for _ in range(n)) for c, n in zip(channels, counts, strict=True)
+        )
         self.out_channels = c_in
         self.grid = image_size
         for _ in channels:
@@ -50,12 +57,25 @@ class ConvEncoder(nn.Module):
         for i, layer in enumerate(self.net):
             x = layer(x)
             if i % 3 == 2:  # conv, norm, activation
+                for block in self.res[i // 3]:
+                    x = block(x)
                 outs.append(x.unflatten(0, (b, n)))
         return outs
 
     def pooled(self, images: torch.Tensor) -> torch.Tensor:
         """Global-average-pooled features of every camera, concatenated: (B, n_cam * C)."""
         return self.forward(images).mean(dim=(-1, -2)).flatten(1)
+
+
+class _ResBlock(nn.Module):
+    """x + GELU(GN(conv3x3(x))): one more layer of context at the same resolution."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.body = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1), nn.GroupNorm(8, channels), nn.GELU())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.body(x)
 
 
 class SpatialSoftmax(nn.Module):
@@ -97,13 +117,14 @@ class SmallBackbone(nn.Module):
         self.n_cog = bc.n_cog_tokens
         self.chunk = cfg.chunk
         n_cam = len(cfg.cameras)
-        self.vision = ConvEncoder(bc.vision_channels, cfg.image_size)
+        self.vision = ConvEncoder(bc.vision_channels, cfg.image_size, bc.res_blocks)
         n_patch = self.vision.grid**2
         self.img_proj = nn.Linear(self.vision.out_channels, d)
         self.img_pos = nn.Parameter(torch.randn(1, n_cam, n_patch, d) * 0.02)
         self.keypoints = None
         if bc.keypoints > 0:
-            self.keypoints = SpatialSoftmax(bc.vision_channels[-2], bc.keypoints)
+            self.keypoint_stage = bc.keypoint_stage
+            self.keypoints = SpatialSoftmax(bc.vision_channels[bc.keypoint_stage], bc.keypoints)
             self.kp_proj = nn.Sequential(nn.Linear(2 * bc.keypoints, d), nn.GELU(), nn.Linear(d, d))
             self.kp_cam = nn.Parameter(torch.randn(1, n_cam, d) * 0.02)
         self.word_emb = nn.Embedding(vocab_size, d, padding_idx=0)
@@ -123,7 +144,7 @@ class SmallBackbone(nn.Module):
         img = self.img_proj(feats.flatten(3).transpose(2, 3)) + self.img_pos  # (B, n_cam, hw, d)
         img = img.flatten(1, 2)
         if self.keypoints is not None:
-            kp = self.keypoints(stages[-2].flatten(0, 1)).flatten(1).unflatten(0, (b, n_cam))  # (B, n_cam, 2K)
+            kp = self.keypoints(stages[self.keypoint_stage].flatten(0, 1)).flatten(1).unflatten(0, (b, n_cam))  # (B, n_cam, 2K)
             img = torch.cat([img, self.kp_proj(kp) + self.kp_cam], dim=1)
         text = self.word_emb(batch["text_ids"]) + self.text_pos[:, : batch["text_ids"].shape[1]]
         prop = self.proprio_proj(batch["proprio"]).unsqueeze(1)

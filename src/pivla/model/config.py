@@ -17,9 +17,11 @@ class BackboneConfig:
     ff_mult: int = 2
     n_cog_tokens: int = 4
     vision_channels: tuple[int, ...] = (32, 64, 128, 128)
-    # spatial-softmax keypoints per camera, read from the second-to-last CNN stage (0 = off): explicit
+    # spatial-softmax keypoints per camera, read from CNN stage `keypoint_stage` (0 = off): explicit
     # image coordinates of learned features, which a policy needs to localise small objects quickly
     keypoints: int = 32
+    keypoint_stage: int = -2  # which CNN stage the keypoints read (-2: 12x12 at 96 px, -3: 24x24)
+    res_blocks: tuple[int, ...] = ()  # residual convolutions per CNN stage (empty = none)
     dropout: float = 0.0
     # hf backbone
     path: str = ""
