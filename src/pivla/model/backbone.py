@@ -118,7 +118,8 @@ class SmallBackbone(nn.Module):
         self.chunk = cfg.chunk
         n_cam = len(cfg.cameras)
         self.vision = ConvEncoder(bc.vision_channels, cfg.image_size, bc.res_blocks)
-        n_patch = self.vision.grid**2
+        self.grid_tokens = bc.grid_tokens
+        n_patch = self.vision.grid**2 if bc.grid_tokens else 1
         self.img_proj = nn.Linear(self.vision.out_channels, d)
         self.img_pos = nn.Parameter(torch.randn(1, n_cam, n_patch, d) * 0.02)
         self.keypoints = None
@@ -141,7 +142,8 @@ class SmallBackbone(nn.Module):
         stages = self.vision.stages(batch["images"])
         feats = stages[-1]  # (B, n_cam, C, h, w)
         b, n_cam = feats.shape[:2]
-        img = self.img_proj(feats.flatten(3).transpose(2, 3)) + self.img_pos  # (B, n_cam, hw, d)
+        cells = feats.flatten(3).transpose(2, 3) if self.grid_tokens else feats.mean(dim=(-1, -2)).unsqueeze(2)
+        img = self.img_proj(cells) + self.img_pos  # (B, n_cam, hw or 1, d)
         img = img.flatten(1, 2)
         if self.keypoints is not None:
             kp = self.keypoints(stages[self.keypoint_stage].flatten(0, 1)).flatten(1).unflatten(0, (b, n_cam))  # (B, n_cam, 2K)
