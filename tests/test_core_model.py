@@ -163,3 +163,15 @@ def test_residual_stages_keep_resolution_and_feed_keypoints():
     m = CMSModel(fine, vocab_size=10)
     assert m.backbone.keypoints.detect.in_channels == 16
     assert m(fake_batch()).continuous.shape == (3, CFG.chunk, CFG.action_dim)
+
+
+def test_pooled_image_tokens_replace_the_grid():
+    """grid_tokens=False gives each camera one pooled token (plus its keypoint token): the same heads from a
+    much shorter sequence."""
+    pooled_cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32),
+                                                                    grid_tokens=False))
+    grid, pooled = CMSModel(CFG, vocab_size=10), CMSModel(pooled_cfg, vocab_size=10)
+    n_cam = len(CFG.cameras)
+    assert grid.backbone.img_pos.shape[:3] == (1, n_cam, grid.backbone.vision.grid**2)
+    assert pooled.backbone.img_pos.shape[:3] == (1, n_cam, 1)
+    assert pooled(fake_batch()).continuous.shape == (3, CFG.chunk, CFG.action_dim)
