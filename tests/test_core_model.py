@@ -168,9 +168,11 @@ def test_residual_stages_keep_resolution_and_feed_keypoints():
 def test_pooled_image_tokens_replace_the_grid():
     """grid_tokens=False gives each camera one pooled token (plus its keypoint token): the same heads from a
     much shorter sequence."""
-    pooled_cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32),
-                                                                    grid_tokens=False))
-    grid, pooled = CMSModel(CFG, vocab_size=10), CMSModel(pooled_cfg, vocab_size=10)
+    def cfg(grid: bool) -> ModelConfig:
+        return ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32),
+                                                                  grid_tokens=grid))
+
+    grid, pooled = CMSModel(cfg(True), vocab_size=10), CMSModel(cfg(False), vocab_size=10)
     n_cam = len(CFG.cameras)
     assert grid.backbone.img_pos.shape[:3] == (1, n_cam, grid.backbone.vision.grid**2)
     assert pooled.backbone.img_pos.shape[:3] == (1, n_cam, 1)

@@ -53,6 +53,21 @@ def test_run_dir_load_policy_and_identical_outputs(tmp_path, synthetic_data):
     assert not any(p.suffix in (".pt", ".pth", ".pkl", ".bin") for p in run.rglob("*"))
 
 
+def test_runs_written_before_a_default_changed_still_load(tmp_path, synthetic_data):
+    """A config.json without ``grid_tokens`` (runs from before the pooled-token default) loads as the grid
+    model it was trained as, with identical outputs."""
+    base = tiny_train_config(synthetic_data, tmp_path / "run", steps=2)
+    grid = dataclasses.replace(base.model.backbone, grid_tokens=True)
+    run = train(dataclasses.replace(base, model=dataclasses.replace(base.model, backbone=grid)))
+    before = load_policy(run, device="cpu").infer(_obs())
+    cfg = json.loads((run / ck.CONFIG_FILE).read_text())
+    del cfg["model"]["backbone"]["grid_tokens"]
+    (run / ck.CONFIG_FILE).write_text(json.dumps(cfg))
+    old = load_policy(run, device="cpu")
+    assert old.model.cfg.backbone.grid_tokens
+    np.testing.assert_array_equal(old.infer(_obs())["actions"], before["actions"])
+
+
 def test_resume_matches_uninterrupted_run(tmp_path, synthetic_data):
     full = train(tiny_train_config(synthetic_data, tmp_path / "full", steps=20, ckpt_every=10))
     interrupted = Trainer(tiny_train_config(synthetic_data, tmp_path / "half", steps=20, ckpt_every=10))

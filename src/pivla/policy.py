@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pivla import config as cfgmod
 from pivla.control.math import action_uncertainty
 from pivla.data.dataset import proprio_vector, resize_images
 from pivla.data.normalize import NormStats
@@ -144,12 +143,10 @@ class Policy:
 
 def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0) -> Policy:
     """Load a run directory written by ``pivla train`` (safetensors + JSON only)."""
-    from pivla.training.trainer import TrainConfig
-
     run_dir = Path(run_dir)
     if threads > 0:
         torch.set_num_threads(threads)
-    cfg = cfgmod.from_dict(TrainConfig, ck.read_json(run_dir / ck.CONFIG_FILE))
+    cfg = ck.read_run_config(run_dir)
     stats = NormStats.from_dict(ck.read_json(run_dir / ck.STATS_FILE))
     text = load_text_tokenizer(ck.read_json(run_dir / ck.TOKENIZER_FILE))
     dev = select_device(device)

@@ -35,7 +35,7 @@ def train(args: argparse.Namespace) -> int:
         base = cfgmod.from_dict(TrainConfig, ck.read_json(Path(args.config)))
     out = vars(args).get("cfg:out")
     if args.resume and base is None and out and (Path(out) / ck.CONFIG_FILE).exists():
-        base = cfgmod.from_dict(TrainConfig, ck.read_json(Path(out) / ck.CONFIG_FILE))
+        base = ck.read_run_config(Path(out))
     cfg = cfgmod.build_config(TrainConfig, args, base)
     run_dir = run_train(cfg, resume=args.resume)
     print(f"run saved to {run_dir}")

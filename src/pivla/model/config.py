@@ -19,12 +19,12 @@ class BackboneConfig:
     vision_channels: tuple[int, ...] = (32, 64, 128, 128)
     # spatial-softmax keypoints per camera, read from CNN stage `keypoint_stage` (0 = off): explicit
     # image coordinates of learned features, which a policy needs to localise small objects quickly
-    keypoints: int = 32
+    keypoints: int = 64
     keypoint_stage: int = -2  # which CNN stage the keypoints read (-2: 12x12 at 96 px, -3: 24x24)
     res_blocks: tuple[int, ...] = ()  # residual convolutions per CNN stage (empty = none)
     # one token per cell of the last CNN grid (True) or one pooled token per camera (False): with keypoints
     # carrying the coordinates, the pooled token cuts the transformer's sequence from ~100 tokens to ~30
-    grid_tokens: bool = True
+    grid_tokens: bool = False
     dropout: float = 0.0
     # hf backbone
     path: str = ""

@@ -404,10 +404,9 @@ def merge_run(run_dir: str | Path, out_dir: str | Path, device: str = "auto") ->
     from pivla import config as cfgmod
     from pivla.policy import load_policy
     from pivla.training import checkpoint as ck
-    from pivla.training.trainer import TrainConfig
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
-    cfg = cfgmod.from_dict(TrainConfig, ck.read_json(run_dir / ck.CONFIG_FILE))
+    cfg = ck.read_run_config(run_dir)
     if cfg.model.backbone.name != "hf":
         raise ValueError(f"{run_dir}: backbone is {cfg.model.backbone.name!r}; only 'hf' runs have adapters")
     if cfg.model.backbone.lora_rank <= 0:

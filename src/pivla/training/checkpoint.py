@@ -47,6 +47,24 @@ def read_json(path: Path) -> Any:
         raise ValueError(f"{path}: corrupt JSON ({e})") from e
 
 
+# backbone fields whose default changed, with the value every run written before they existed used
+LEGACY_BACKBONE = {"grid_tokens": True}
+
+
+def read_run_config(run_dir: Path):
+    """The ``TrainConfig`` of a run directory. Runs written before a default changed keep what they were
+    trained with (``LEGACY_BACKBONE``), so old policies still load."""
+    from pivla import config as cfgmod
+    from pivla.training.trainer import TrainConfig
+
+    data = read_json(Path(run_dir) / CONFIG_FILE)
+    backbone = data.get("model", {}).get("backbone")
+    if isinstance(backbone, dict):
+        for key, value in LEGACY_BACKBONE.items():
+            backbone.setdefault(key, value)
+    return cfgmod.from_dict(TrainConfig, data)
+
+
 def save_tensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None) -> None:
     with atomic_path(path) as tmp:
         save_file({k: v.detach().contiguous().cpu() for k, v in tensors.items()}, tmp, metadata=metadata)
