@@ -17,6 +17,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from pivla.evaluation import protocol
+
 log = logging.getLogger("pivla.demo")
 
 EXECUTORS = ("aurd", "fixed", "ensemble", "adahorizon")
@@ -29,10 +31,8 @@ class DemoConfig:
     train_episodes: int = 40  # per task
     val_episodes: int = 5  # per task, for calibration only
     test_episodes: int = 10  # per task and condition
-    # more, smaller updates (at 1800 x 64 the policy had not learned to localise objects); 5000 steps of the
-    # pooled-token backbone take the time 3600 steps of the grid-token one took
-    steps: int = 5000
-    batch_size: int = 32
+    steps: int = protocol.STEPS
+    batch_size: int = protocol.BATCH_SIZE
     noise: float = 0.3  # DART: noise on executed expert actions, clean labels (recovery data)
     # AURD measures U_pred above the episode's floor (control.math.surprise): with the raw U_pred of Eq. 14
     # it replanned after every action in unseen environments (docs/results.md, session 3)

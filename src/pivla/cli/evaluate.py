@@ -6,6 +6,8 @@ import argparse
 import json
 import logging
 
+from pivla.evaluation import protocol
+
 
 def _add_eval_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env", default="tabletop", choices=["tabletop", "libero"])
@@ -53,8 +55,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
                             help="validation demonstrations (calibration falls back to them when a variant's "
                                  "validation rollouts all fail)")
         parser.add_argument("--out", required=True)
-        parser.add_argument("--steps", type=int, default=3600)
-        parser.add_argument("--batch-size", type=int, default=32)
+        parser.add_argument("--steps", type=int, default=protocol.STEPS, help="training steps per variant (the demo's)")
+        parser.add_argument("--batch-size", type=int, default=protocol.BATCH_SIZE)
         parser.add_argument("--train-seed", type=int, default=0)
         parser.add_argument("--val-seed", type=int, default=1, help="seed of the validation rollouts")
         parser.add_argument("--val-episodes", type=int, default=5, help="validation rollouts per task")

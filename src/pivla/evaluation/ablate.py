@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pivla.control.math import wilson_interval
+from pivla.evaluation import protocol
 from pivla.evaluation.report import newcombe_difference
 from pivla.model.config import ModelConfig
 from pivla.training.checkpoint import atomic_write_bytes
@@ -46,8 +47,8 @@ class AblationConfig:
     data: str
     val: str
     out: str
-    steps: int = 3600  # the demo's training length and batch
-    batch_size: int = 32
+    steps: int = protocol.STEPS  # the demo's training length and batch
+    batch_size: int = protocol.BATCH_SIZE
     seed: int = 1000  # first test seed
     train_seed: int = 0
     val_episodes: int = 5  # validation rollouts per task, for calibration

@@ -17,6 +17,12 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+# The demo's training length and batch, which ablations use too. More, smaller updates: at 1800 x 64 the first
+# policy had not learned to localise objects, and twice the steps of the same model added ~11 points
+# (docs/results.md, sessions 2 and 5).
+STEPS = 5000
+BATCH_SIZE = 32
+
 
 def train_config(data: str, out: str, steps: int, batch_size: int, seed: int, loss_overrides: dict | None = None,
                  progress: bool = True, model: ModelConfig | None = None) -> TrainConfig:
