@@ -16,3 +16,10 @@ def test_bench_control_json(capsys):
     out = json.loads(capsys.readouterr().out)
     assert {"fixed_ms_per_step", "aurd_ms_per_step", "aurd_overhead_pct"} <= set(out)
     assert out["policy_queries"]["aurd"] == out["policy_queries"]["fixed"]  # same plans: the gap is pure overhead
+
+
+def test_bench_train_json_for_both_token_layouts(capsys):
+    for extra in ([], ["--grid-tokens"]):
+        assert main(["bench", "train", "--steps", "4", "--batch-size", "2", "--threads", "1", "--json", *extra]) == 0
+        out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert out["grid_tokens"] is bool(extra) and out["samples_per_s"] > 0

@@ -19,6 +19,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("train", help="training samples/s of the default policy on synthetic data")
     p.add_argument("--steps", type=int, default=30)
     p.add_argument("--batch-size", type=int, default=64)
+    p.add_argument("--grid-tokens", action="store_true",
+                   help="the grid-token backbone (the default until session 5) instead of pooled tokens")
     p.set_defaults(func=bench_train)
     p = sub.add_parser("sim", help="environment steps/s with cameras, and collection episodes/min")
     p.add_argument("--env", default="tabletop", choices=["tabletop", "libero"])
@@ -127,6 +129,7 @@ def bench_train(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         cfg = ModelConfig()
+        cfg.backbone.grid_tokens = args.grid_tokens
         make_synthetic_dataset(f"{tmp}/data", episodes_per_goal=4, T=40, size=cfg.image_size)
         tc = TrainConfig(data=f"{tmp}/data", out=f"{tmp}/run", steps=args.steps, batch_size=args.batch_size,
                          model=cfg, progress=False)
@@ -139,7 +142,7 @@ def bench_train(args: argparse.Namespace) -> int:
             times.append(time.perf_counter() - t)
     med = float(np.median(times[3:]))
     return emit({"train_step_s_median": round(med, 4), "samples_per_s": round(args.batch_size / med, 1),
-                 "batch_size": args.batch_size, "threads": args.threads}, args.json)
+                 "batch_size": args.batch_size, "threads": args.threads, "grid_tokens": args.grid_tokens}, args.json)
 
 
 def bench_sim(args: argparse.Namespace) -> int:
