@@ -275,10 +275,10 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
                     consume(row)
     bar.close()
     rows = sorted(done.values(), key=_key)
-    if cfg.record:
-        _merge_rollouts(Path(cfg.record), rows)
     results = aggregate(rows, cfg, tau_high)
     atomic_write_json(out / "results.json", results)
+    if cfg.record:  # after results.json: a missing recording must not cost the evaluation its results
+        _merge_rollouts(Path(cfg.record), rows)
     return results
 
 
