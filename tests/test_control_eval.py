@@ -105,7 +105,8 @@ def test_recordings_survive_an_interrupted_evaluation(tiny_policy, tmp_path):
     cfg.episodes = 3
     evaluate(cfg, progress=False)
     eps = read_dataset(rec)
-    assert [e.meta["seed"] for e in eps] == [r["seed"] for r in map(json.loads, (out / "episodes.jsonl").read_text().splitlines())]
+    logged = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()]
+    assert [e.meta["seed"] for e in eps] == [r["seed"] for r in logged]
     assert len(eps) == 3 and np.array_equal(eps[0].actions, first[0].actions)
     assert len(list((rec / ".parts").glob("*.hdf5"))) == 3  # kept for later resumes, not read as data
 

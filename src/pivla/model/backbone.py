@@ -146,7 +146,8 @@ class SmallBackbone(nn.Module):
         img = self.img_proj(cells) + self.img_pos  # (B, n_cam, hw or 1, d)
         img = img.flatten(1, 2)
         if self.keypoints is not None:
-            kp = self.keypoints(stages[self.keypoint_stage].flatten(0, 1)).flatten(1).unflatten(0, (b, n_cam))  # (B, n_cam, 2K)
+            kp = self.keypoints(stages[self.keypoint_stage].flatten(0, 1))  # (B * n_cam, K, 2)
+            kp = kp.flatten(1).unflatten(0, (b, n_cam))  # (B, n_cam, 2K)
             img = torch.cat([img, self.kp_proj(kp) + self.kp_cam], dim=1)
         text = self.word_emb(batch["text_ids"]) + self.text_pos[:, : batch["text_ids"].shape[1]]
         prop = self.proprio_proj(batch["proprio"]).unsqueeze(1)

@@ -12,12 +12,15 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from safetensors.torch import load_file, save_file
 
 from pivla.io import atomic_dir, atomic_path
+
+if TYPE_CHECKING:
+    from pivla.training.trainer import TrainConfig
 
 MODEL_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
@@ -51,7 +54,7 @@ def read_json(path: Path) -> Any:
 LEGACY_BACKBONE = {"grid_tokens": True}
 
 
-def read_run_config(run_dir: Path):
+def read_run_config(run_dir: Path) -> TrainConfig:
     """The ``TrainConfig`` of a run directory. Runs written before a default changed keep what they were
     trained with (``LEGACY_BACKBONE``), so old policies still load."""
     from pivla import config as cfgmod
