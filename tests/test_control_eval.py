@@ -91,6 +91,9 @@ def test_rollouts_are_recorded_with_failures_for_training(tiny_policy, tmp_path)
     eps = read_dataset(tmp_path / "roll")
     assert len(eps) == 2 and all(e.source == "policy" for e in eps)
     assert all(len(e.rewards) == len(e) for e in eps)
+    with pytest.raises(SystemExit, match="--miss"):
+        main(["collect", "--env", "tabletop", "--suite", "pick_place", "--episodes", "1", "--miss", "0.3",
+              "--policy", str(tiny_policy), "--out", str(tmp_path / "roll2")])
 
 
 def test_recordings_survive_an_interrupted_evaluation(tiny_policy, tmp_path):

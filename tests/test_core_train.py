@@ -136,5 +136,14 @@ def test_one_head_policy_executes_its_head_and_has_no_action_uncertainty(tmp_pat
     primary = out["continuous_normalized"] if head == "continuous" else out["dequantized"]
     assert policy.action_head == head and np.allclose(out["actions_normalized"], primary)
     assert out["u_act"].shape == (policy.chunk,) and not out["u_act"].any()
-    both = load_policy(train(tiny_train_config(synthetic_data, tmp_path / "both", steps=2)), device="cpu").infer(obs)
+    both_run = train(tiny_train_config(synthetic_data, tmp_path / "both", steps=2))
+    both = load_policy(both_run, device="cpu").infer(obs)
     assert both["u_act"].min() > 0
+    # two heads: the arm from the continuous head, the gripper (last dimension) from Eq. 12 unless asked otherwise
+    assert np.allclose(both["actions_normalized"][:, :-1], both["continuous_normalized"][:, :-1])
+    assert np.allclose(both["actions_normalized"][:, -1], both["dequantized"][:, -1])
+    assert not np.allclose(both["dequantized"][:, -1], both["continuous_normalized"][:, -1])
+    cont = load_policy(both_run, device="cpu", gripper_head="continuous").infer(obs)
+    assert np.allclose(cont["actions_normalized"], cont["continuous_normalized"])
+    with pytest.raises(ValueError, match="gripper_head"):
+        load_policy(both_run, device="cpu", gripper_head="mode")

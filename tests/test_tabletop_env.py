@@ -7,8 +7,9 @@ import pytest
 from pivla.envs import select_tasks
 from pivla.envs.tabletop import ENV_ID, list_tasks, make_env, parse_perturb
 from pivla.envs.tabletop.bench import measure_repeatability
-from pivla.envs.tabletop.expert import make_expert
-from pivla.envs.tabletop.perturb import PerturbConfig
+from pivla.envs.rollout import run_episode
+from pivla.envs.tabletop.expert import Expert, ExpertConfig, make_expert
+from pivla.envs.tabletop.perturb import TABLE_MATERIALS, TRAIN_TABLE_MATERIALS, PerturbConfig
 
 
 def test_suites_and_unseen_split():
@@ -90,6 +91,23 @@ def test_stage_rewards_sum_to_one_on_success():
     assert (rewards > 0).sum() >= 4  # dense: several stages rewarded along the way
 
 
+def test_a_missed_grasp_is_executed_but_not_labelled_and_then_recovered():
+    """miss=1: the arm closes on nothing beside the rock, reopens and grasps again; the recorded labels never
+    ask to close there, and the episode still succeeds."""
+    env = make_env("pick_place", "rock_left", image_size=32)
+    ep = run_episode(env, make_expert(0.0, miss=1.0), seed=3)
+    assert ep.success
+    observed_closed = np.flatnonzero(ep.obs["gripper_states"][:, 0] < 0.005)  # fingers shut on nothing
+    first_close_label = int(np.flatnonzero(ep.actions[:, 6] > 0)[0])
+    assert len(observed_closed) and observed_closed[0] < first_close_label
+    reopened = ep.obs["gripper_states"][observed_closed[-1] + 1 : first_close_label, 0]
+    assert (reopened > 0.03).any()
+    clean = run_episode(env, make_expert(0.0), seed=3)
+    assert clean.success and len(clean) < len(ep) and (clean.obs["gripper_states"][:, 0] > 0.005).all()
+    with pytest.raises(ValueError, match="retries"):
+        Expert(ExpertConfig(miss=0.5, retries=0))
+
+
 def test_parse_perturb_grammar():
     assert parse_perturb(None) == PerturbConfig() and parse_perturb("") == PerturbConfig()
     cfg = parse_perturb(" unseen_env , dynamic_distractors,level=4")
@@ -106,7 +124,8 @@ def test_parse_perturb_grammar():
 
 
 @pytest.mark.parametrize("spec", ["unseen_env", "static_distractors,level=4", "dynamic_distractors,level=2",
-                                  "camera_jitter", "unseen_env,static_distractors,dynamic_distractors,camera_jitter,level=6"])
+                                  "camera_jitter", "randomized_scene,level=2",
+                                  "unseen_env,static_distractors,dynamic_distractors,camera_jitter,level=6"])
 def test_perturbation_changes_pixels_not_success(spec):
     clean = _rollout(make_env("pick_place", "ball_left", image_size=48), seed=11)
     pert = _rollout(make_env("pick_place", "ball_left", image_size=48, perturb=spec), seed=11)
@@ -130,6 +149,25 @@ def test_perturbations_differ_between_seeds():
     b = env.reset(seed=2)[0]["agentview_rgb"]
     assert not np.array_equal(a, b)
     assert np.array_equal(a, env.reset(seed=1)[0]["agentview_rgb"])
+
+
+def test_training_randomisation_keeps_the_test_textures_unseen():
+    """randomized_scene (training data) and unseen_env (test) share no texture; half the training scenes stay
+    clean, the rest are restyled with training materials only, and the physics is that of the clean scene."""
+    assert parse_perturb("randomized_scene").randomized_scene and parse_perturb("randomized_scene").active
+    assert set(TRAIN_TABLE_MATERIALS) & set(TABLE_MATERIALS) == {"table"}  # plain: colour only
+    clean = make_env("pick_place", "ball_left", image_size=48)
+    env = make_env("pick_place", "ball_left", image_size=48, perturb="randomized_scene")
+    table = env.model.geom("table").id
+    restyled, used = 0, set()
+    for seed in range(12):
+        a = env.reset(seed=seed)[0]["agentview_rgb"]
+        b = clean.reset(seed=seed)[0]["agentview_rgb"]
+        used.add(env.model.material(int(env.model.geom_matid[table])).name)
+        restyled += not np.array_equal(a, b)
+        assert np.array_equal(env.privileged_state()["ee_pos"], clean.privileged_state()["ee_pos"])
+    assert used <= set(TRAIN_TABLE_MATERIALS) and len(used) > 1
+    assert 2 <= restyled <= 10
 
 
 def test_servo_repeatability_is_about_ten_mm():

@@ -48,7 +48,9 @@ def select_device(device: str = "auto") -> torch.device:
 class Policy:
     def __init__(self, model: CMSModel, stats: NormStats, text: WordTokenizer, run_dir: Path | None = None,
                  calibration: Calibration | None = None, device: torch.device | None = None,
-                 action_head: str = "continuous", both_heads: bool = True):
+                 action_head: str = "continuous", both_heads: bool = True, gripper_head: str | None = None):
+        if gripper_head not in (None, "continuous", "discrete"):
+            raise ValueError(f"gripper_head must be 'continuous' or 'discrete', got {gripper_head!r}")
         self.model = model.eval()
         self.cfg = model.cfg
         self.stats = stats
@@ -63,6 +65,12 @@ class Policy:
         # U_act (Eq. 13) is the disagreement of two trained heads; a one-head ablation has none, and comparing
         # with the untrained head would feed AURD noise
         self.both_heads = both_heads
+        # The gripper (the last action dimension, open -1 / closed +1) is a binary decision taken at a few
+        # moments of an episode. The cross-entropy of the discrete head learns those moments; the SmoothL1 of
+        # the continuous head can miss them (a policy whose discrete head gave P(open) = 0.95 kept its
+        # continuous gripper at +1, set the object down and never let go; docs/results.md, session 6).
+        # So with two trained heads the gripper follows Eq. 12 and the arm the continuous head.
+        self.gripper_head = gripper_head or ("discrete" if both_heads else action_head)
 
     # -- transforms ------------------------------------------------------------------------------------
     def _check_obs(self, obs: dict) -> None:
@@ -106,7 +114,8 @@ class Policy:
         probs = torch.softmax(out.logits.float(), dim=-1)
         cont = out.continuous.float().clamp(-1, 1).cpu().numpy()
         deq = (probs @ self.model.bin_centers).cpu().numpy()  # Eq. 12
-        primary = cont if self.action_head == "continuous" else deq
+        primary = (cont if self.action_head == "continuous" else deq).copy()
+        primary[..., -1] = (cont if self.gripper_head == "continuous" else deq)[..., -1]
         return {
             "actions": self.stats.action.unnormalize(primary),
             "actions_normalized": primary,
@@ -120,7 +129,8 @@ class Policy:
         }
 
     def infer(self, obs: dict) -> dict[str, np.ndarray]:
-        """One observation -> actions (K,7) un-normalised from the primary head, actions_normalized (K,7),
+        """One observation -> actions (K,7) un-normalised from the primary head (the gripper from
+        ``gripper_head``), actions_normalized (K,7),
         continuous_normalized and dequantized (K,7) (both heads, normalized; Eq. 12 for the latter), u_act (K,)
         (Eq. 13; zero for a policy trained with one head),
         discrete_probs (K,7,256), latents (K,d_z) predicted next-observation latents, values (H,),
@@ -141,8 +151,9 @@ class Policy:
         return self.stats.action.unnormalize(normalized)
 
 
-def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0) -> Policy:
-    """Load a run directory written by ``pivla train`` (safetensors + JSON only)."""
+def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0, gripper_head: str | None = None) -> Policy:
+    """Load a run directory written by ``pivla train`` (safetensors + JSON only). ``gripper_head``: which head
+    drives the gripper (default: the discrete one when both were trained, see ``Policy``)."""
     run_dir = Path(run_dir)
     if threads > 0:
         torch.set_num_threads(threads)
@@ -158,4 +169,5 @@ def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0) -> 
         calib = Calibration(**ck.read_json(run_dir / ck.CALIBRATION_FILE))
     head = "continuous" if cfg.loss.use_continuous else "discrete"
     both = cfg.loss.use_continuous and cfg.loss.use_discrete
-    return Policy(model.to(dev), stats, text, run_dir, calib, dev, action_head=head, both_heads=both)
+    return Policy(model.to(dev), stats, text, run_dir, calib, dev, action_head=head, both_heads=both,
+                  gripper_head=gripper_head)

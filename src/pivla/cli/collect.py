@@ -35,6 +35,9 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
                             f"{', '.join(f'{k} {v}' for k, v in DEFAULT_IMAGE_SIZE.items())})")
         parser.add_argument("--noise", type=float, default=0.0,
                             help="noise on the expert's executed actions (std, action units); labels stay clean (DART)")
+        parser.add_argument("--miss", type=float, default=0.0,
+                            help="share of episodes whose first grasp is executed off the object, so the "
+                                 "demonstrations show reopening and grasping again (labels stay clean)")
         parser.add_argument("--paraphrase", action="store_true", help="draw an instruction paraphrase per episode")
         parser.add_argument("--keep-failures", action="store_true",
                             help="keep failed expert episodes instead of replacing them with new seeds")
@@ -69,6 +72,8 @@ def collect(args: argparse.Namespace) -> int:
     if args.image_size is None:
         args.image_size = DEFAULT_IMAGE_SIZE[args.env]
     if args.policy:
+        if args.noise or args.miss:
+            raise SystemExit("pivla collect: --noise and --miss shape expert demonstrations, not --policy rollouts")
         return collect_rollouts(args)
     if args.env == "libero":
         return collect_libero(args)
@@ -79,7 +84,7 @@ def collect(args: argparse.Namespace) -> int:
         raise SystemExit(f"pivla collect: {e}") from e
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    expert = make_expert(args.noise)
+    expert = make_expert(args.noise, args.miss)
     factories = {
         spec.name: functools.partial(make_env, args.suite, spec.name, image_size=args.image_size,
                                      realism=args.realism, perturb=perturb.spec(), paraphrase=args.paraphrase)
@@ -121,7 +126,7 @@ def collect(args: argparse.Namespace) -> int:
             "perturb": perturb.spec(), "image_size": args.image_size, "control_hz": CONTROL_HZ,
             "action": {"translation_m_per_unit": TRANS_SCALE, "rotation_rad_per_unit": ROT_SCALE,
                        "gripper": "-1 open, +1 closed"},
-            "seed": args.seed, "noise": args.noise, "attempts": attempts[spec.name],
+            "seed": args.seed, "noise": args.noise, "miss": args.miss, "attempts": attempts[spec.name],
         }
         path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta)
         log.info("%s: %d episodes (%d steps) -> %s; expert success %.1f%% over %d attempts", spec.name,
@@ -143,7 +148,8 @@ def collect_libero(args: argparse.Namespace) -> int:
     from pivla.envs import select_tasks
 
     unsupported = {"--perturb (use a LIBERO-PRO suite)": args.perturb, "--paraphrase (use a *_lan suite)":
-                   args.paraphrase, "--noise": args.noise, "--realism servo": args.realism != "ideal"}
+                   args.paraphrase, "--noise": args.noise, "--miss": args.miss,
+                   "--realism servo": args.realism != "ideal"}
     given = [flag for flag, value in unsupported.items() if value]
     if given:
         raise SystemExit(f"pivla collect --env libero: not supported: {', '.join(given)}")

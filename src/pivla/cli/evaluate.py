@@ -36,6 +36,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--record", default=None, help="also write every rollout into this dataset directory")
         parser.add_argument("--split", default="test", choices=["test", "validation"],
                             help="validation: rollouts to calibrate on (pivla report leaves them out)")
+        parser.add_argument("--gripper-head", default=None, choices=["continuous", "discrete"],
+                            help="head that drives the gripper (default: discrete when both were trained)")
         parser.set_defaults(func=cmd_eval)
     elif command == "calibrate":
         parser.add_argument("--policy", required=True, help="run directory")
@@ -89,7 +91,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                      executor=args.executor, episodes=args.episodes, seed=args.seed, perturb=args.perturb,
                      realism=args.realism, workers=args.workers, videos=args.videos, max_steps=args.max_steps,
                      executor_options=_parse_options(args.option), record=args.record,
-                     first_init_state=args.first_init_state, split=args.split)
+                     first_init_state=args.first_init_state, split=args.split, gripper_head=args.gripper_head)
     res = evaluate(cfg)
     lo, hi = res["ci95"]
     print(f"{args.executor}: success {res['success_rate']:.1%} [{lo:.1%}, {hi:.1%}] over {res['episodes']} episodes; "

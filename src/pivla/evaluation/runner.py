@@ -49,6 +49,7 @@ class EvalConfig:
     # so the test states are known and can be kept apart from the states demonstrations were collected on
     first_init_state: int = 0
     split: str = "test"  # "validation" for the rollouts thresholds are calibrated on; reports show test only
+    gripper_head: str | None = None  # None: the policy's default (pivla.policy.Policy)
 
 
 def eval_threads(workers: int) -> int:
@@ -78,7 +79,8 @@ def _init_worker(cfg: EvalConfig, threads: int) -> None:
     _STATE["cfg"] = cfg
     _STATE["envs"] = {}
     try:
-        _STATE["policy"] = load_policy(cfg.policy, device="cpu" if not torch.cuda.is_available() else "auto")
+        _STATE["policy"] = load_policy(cfg.policy, device="cpu" if not torch.cuda.is_available() else "auto",
+                                       gripper_head=cfg.gripper_head)
     except Exception as e:  # noqa: BLE001 - re-raised with context in _run_job
         _STATE["error"] = f"{type(e).__name__}: {e}"
 
@@ -228,10 +230,11 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     out = Path(cfg.out)
     (out / "traces").mkdir(parents=True, exist_ok=True)
     tasks = select_tasks(cfg.env, cfg.suite, cfg.tasks)
-    policy = load_policy(cfg.policy, device="cpu")
+    policy = load_policy(cfg.policy, device="cpu", gripper_head=cfg.gripper_head)
     if cfg.executor == "aurd" and policy.calibration is None and not {"tau_low", "tau_high", "v_thresh"} <= set(cfg.executor_options):
         raise SystemExit(f"{cfg.policy}: not calibrated; run `pivla calibrate --policy {cfg.policy} --data VAL` first")
     tau_high = cfg.executor_options.get("tau_high", policy.calibration.tau_high if policy.calibration else None)
+    gripper_head = policy.gripper_head
     del policy
     atomic_write_json(out / "eval_config.json", asdict(cfg))
     log_path = out / "episodes.jsonl"
@@ -275,7 +278,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
                     consume(row)
     bar.close()
     rows = sorted(done.values(), key=_key)
-    results = aggregate(rows, cfg, tau_high)
+    results = aggregate(rows, cfg, tau_high) | {"gripper_head": gripper_head}
     atomic_write_json(out / "results.json", results)
     if cfg.record:  # after results.json: a missing recording must not cost the evaluation its results
         _merge_rollouts(Path(cfg.record), rows)

@@ -14,6 +14,13 @@ Phases that end on a millimetre tolerance (``PRECISE_PHASES``: setting an object
 run without noise: with it, lowering took ~11 steps instead of 3, and the demonstrations taught a policy to
 hover with the object instead of letting go. A per-episode draw of lift height, approach height and speed
 adds variety.
+
+A grasp that does not hold is retried (open, rise, approach again). ``miss > 0`` makes that recovery part
+of the demonstrations, in the same DART spirit: in that share of episodes the first grasp is *executed* a few
+centimetres off the object and closed on nothing, while the labels stay the clean expert's; the reopening and
+the second approach that follow are recorded as they are. Policies trained without it closed the gripper
+short of a small object and then hovered with it closed for the rest of the episode (docs/results.md,
+session 6).
 """
 
 from __future__ import annotations
@@ -41,6 +48,9 @@ class ExpertConfig:
     # steps recorded after success: the task succeeds on the first opening step, and a demonstration that
     # stops there shows release once, so policies learned to set the object down and keep holding it
     follow_through: int = 5
+    retries: int = 2  # further grasps after one that did not hold
+    miss: float = 0.0  # share of episodes whose first grasp is executed off the object (labels stay clean)
+    miss_offset: tuple[float, float] = (0.02, 0.04)  # m, horizontal distance of a missed grasp from the object
 
 
 def _wrap(angle: float, period: float) -> float:
@@ -54,6 +64,10 @@ class Expert:
 
     def __init__(self, config: ExpertConfig | None = None):
         self.config = config or ExpertConfig()
+        if not 0.0 <= self.config.miss <= 1.0:
+            raise ValueError(f"miss must be a share in [0, 1], got {self.config.miss}")
+        if self.config.miss > 0 and self.config.retries < 1:
+            raise ValueError("a deliberate miss needs retries >= 1 to recover from")
         self.env: TabletopEnv | None = None
         self._plan: Iterator[np.ndarray] | None = None
         self.phase = ""
@@ -73,7 +87,12 @@ class Expert:
         self.lift = cfg.lift + 0.015 * jitter[0]
         self.approach = cfg.approach + 0.01 * jitter[1]
         self.gain = cfg.gain * (1.0 + 0.1 * jitter[2])
+        self._miss = None
+        if cfg.miss > 0 and self.rng.uniform() < cfg.miss:
+            angle, dist = self.rng.uniform(-np.pi, np.pi), self.rng.uniform(*cfg.miss_offset)
+            self._miss = dist * np.array([np.cos(angle), np.sin(angle), 0.0])
         self._plan = self._task_plan()
+        self._executed: np.ndarray | None = None
         self.label: np.ndarray | None = None
 
     def __call__(self, obs: dict) -> np.ndarray:
@@ -83,9 +102,10 @@ class Expert:
         if action is None:  # plan finished without success: hold still with the gripper open
             action = np.array([0, 0, 0, 0, 0, 0, -1.0])
         self.label = np.clip(action, -1.0, 1.0).astype(np.float32)
+        executed, self._executed = (action if self._executed is None else self._executed), None
         if self.config.noise <= 0 or self.phase in PRECISE_PHASES:
-            return self.label
-        executed = action.copy()
+            return np.clip(executed, -1.0, 1.0).astype(np.float32)
+        executed = executed.copy()
         executed[:6] += self.rng.normal(0.0, self.config.noise, 6)
         return np.clip(executed, -1.0, 1.0).astype(np.float32)
 
@@ -104,18 +124,23 @@ class Expert:
         return np.concatenate([trans, np.clip(rot, -1.0, 1.0), [grip]])
 
     def _move(self, phase: str, target: Target, yaw: float, grip: float, tol: float, budget: int = 30,
-              done: Callable[[dict], bool] | None = None) -> Iterator[np.ndarray]:
-        """Drive the tool centre to ``target(state)``; stop within ``tol`` (and ``done``) or after ``budget``."""
+              done: Callable[[dict], bool] | None = None, aim: Target | None = None) -> Iterator[np.ndarray]:
+        """Drive the tool centre to ``target(state)``; stop within ``tol`` (and ``done``) or after ``budget``.
+        With ``aim`` the arm is driven to ``aim(state)`` instead (a deliberate miss) while the yielded labels
+        still head for ``target``."""
         self.phase = phase
         trail = []
         for _ in range(budget):
             state = self._state()
             goal = target(state)
-            if np.linalg.norm(goal - state["ee_pos"]) < tol and (done is None or done(state)):
+            reach = goal if aim is None else aim(state)
+            if np.linalg.norm(reach - state["ee_pos"]) < tol and (done is None or done(state)):
                 return
             trail.append(state["ee_pos"])
             if len(trail) > 4 and np.linalg.norm(trail[-1] - trail[-4]) < STALL:
                 return  # blocked (contact, joint limit or servo deadband): waiting would not help
+            if aim is not None:
+                self._executed = self._action(state, reach, yaw, grip)
             yield self._action(state, goal, yaw, grip)
 
     def _hold(self, phase: str, grip: float, steps: int, yaw: float) -> Iterator[np.ndarray]:
@@ -140,8 +165,9 @@ class Expert:
 
     # ------------------------------------------------------------------------------------------- skills
     def _pick(self, name: str, dest: np.ndarray | None = None) -> Iterator[np.ndarray]:
+        """Approach, descend, close and lift; a grasp that does not hold is retried (``config.retries``),
+        and the first one is the deliberate miss of a ``miss`` episode."""
         spec = tasks.OBJECTS[name]
-        yaw = self._grasp_yaw(name, self._state(), dest)
 
         def above(s: dict) -> np.ndarray:
             p = s["objects"][name]["pos"]
@@ -151,12 +177,34 @@ class Expert:
             p = s["objects"][name]["pos"]
             return np.array([p[0], p[1], spec.grasp_z])
 
-        yield from self._move("approach", above, yaw, -1.0, tol=0.012)
-        yield from self._move("descend", grasp, yaw, -1.0, tol=0.006, budget=12)
-        yield from self._hold("close", 1.0, self.config.grip_steps, yaw)
-        lift_z = spec.grasp_z + self.lift
-        start = self._state()["ee_pos"].copy()
-        yield from self._move("lift", lambda s: np.array([start[0], start[1], lift_z]), yaw, 1.0, tol=0.015)
+        for attempt in range(self.config.retries + 1):
+            yaw = self._grasp_yaw(name, self._state(), dest)
+            if attempt == 0 and self._miss is not None:
+                yield from self._missed_grasp(above, grasp, self._miss, yaw)
+            else:
+                yield from self._move("approach", above, yaw, -1.0, tol=0.012)
+                yield from self._move("descend", grasp, yaw, -1.0, tol=0.006, budget=12)
+                yield from self._hold("close", 1.0, self.config.grip_steps, yaw)
+                lift_z = spec.grasp_z + self.lift
+                start = self._state()["ee_pos"].copy()
+                yield from self._move("lift", lambda s: np.array([start[0], start[1], lift_z]), yaw, 1.0, tol=0.015)
+                if self._state()["objects"][name]["grasped"] or attempt == self.config.retries:
+                    return
+            yield from self._hold("reopen", -1.0, self.config.grip_steps, yaw)
+            rise = self._state()["ee_pos"].copy()
+            rise[2] = max(rise[2], spec.grasp_z + self.approach)
+            yield from self._move("rise", lambda s: rise, yaw, -1.0, tol=0.012, budget=10)
+
+    def _missed_grasp(self, above: Target, grasp: Target, offset: np.ndarray, yaw: float) -> Iterator[np.ndarray]:
+        """Executed: approach, descend and close ``offset`` away from the object. Labelled: the clean
+        approach and descent onto it, gripper open (closing there is the mistake, not the lesson)."""
+        yield from self._move("approach", above, yaw, -1.0, tol=0.012, aim=lambda s: above(s) + offset)
+        yield from self._move("descend", grasp, yaw, -1.0, tol=0.006, budget=12, aim=lambda s: grasp(s) + offset)
+        self.phase = "close"
+        for _ in range(self.config.grip_steps):
+            state = self._state()
+            self._executed = self._action(state, state["ee_pos"], yaw, 1.0)
+            yield self._action(state, grasp(state), yaw, -1.0)
 
     def _place(self, name: str, xy: Callable[[dict], np.ndarray], rest_z: float) -> Iterator[np.ndarray]:
         """Carry the held object above ``xy``, lower it until it rests at ``rest_z``, release, retreat."""
@@ -213,5 +261,5 @@ class Expert:
                 yield from self._place(goal.obj, lambda s: s["objects"][goal.onto]["pos"][:2].copy(), rest)
 
 
-def make_expert(noise: float = 0.0) -> Expert:
-    return Expert(ExpertConfig(noise=noise))
+def make_expert(noise: float = 0.0, miss: float = 0.0) -> Expert:
+    return Expert(ExpertConfig(noise=noise, miss=miss))

@@ -3,9 +3,14 @@
 Spec grammar (``--perturb``), comma-separated, order-free, whitespace ignored::
 
     spec   := "" | "none" | item ("," item)*
-    item   := "unseen_env" | "static_distractors" | "dynamic_distractors" | "camera_jitter" | "level=" INT
+    item   := "unseen_env" | "static_distractors" | "dynamic_distractors" | "camera_jitter"
+            | "randomized_scene" | "level=" INT
 
 - ``unseen_env``: table colour and texture, floor and wall colours, light direction and intensity.
+- ``randomized_scene``: domain randomisation for *training* data, kept apart from ``unseen_env``: the table
+  is plain or carries a training-only texture (tiles, crosses) that no test scene uses, while the test's
+  textures (checker, gradient, speckle) never appear in training; colours, floor, wall and light vary over
+  the same ranges. A share ``CLEAN_SCENE_SHARE`` of the episodes keeps the clean scene.
 - ``static_distractors`` / ``dynamic_distractors``: ``level`` extra objects (random primitive, size and
   colour) on the table; dynamic ones slide and spin during the episode. Both flags together: half move.
 - ``level=N`` (0..MAX_LEVEL): the distraction level, i.e. the number of distractors. Without a distractor
@@ -27,8 +32,10 @@ import numpy as np
 
 MAX_LEVEL = 6
 DEFAULT_LEVEL = 3
-FLAGS = ("unseen_env", "static_distractors", "dynamic_distractors", "camera_jitter")
-TABLE_MATERIALS = ("table", "table_checker", "table_grain", "table_dots")
+FLAGS = ("unseen_env", "static_distractors", "dynamic_distractors", "camera_jitter", "randomized_scene")
+TABLE_MATERIALS = ("table", "table_checker", "table_grain", "table_dots")  # unseen_env (test)
+TRAIN_TABLE_MATERIALS = ("table", "table_tiles", "table_crosses")  # randomized_scene (training)
+CLEAN_SCENE_SHARE = 0.5
 DISTRACTOR_REGION = ((0.04, 0.34), (-0.22, 0.22))  # x, y ranges on the table
 MIN_CLEARANCE = 0.06  # m from task objects, their goals and the robot base
 
@@ -39,6 +46,7 @@ class PerturbConfig:
     static_distractors: bool = False
     dynamic_distractors: bool = False
     camera_jitter: bool = False
+    randomized_scene: bool = False
     level: int = 0
 
     @property
@@ -60,7 +68,7 @@ class PerturbConfig:
 
     @property
     def active(self) -> bool:
-        return self.unseen_env or self.camera_jitter or self.n_distractors > 0
+        return self.unseen_env or self.camera_jitter or self.randomized_scene or self.n_distractors > 0
 
 
 def parse_perturb(spec: str | None) -> PerturbConfig:
@@ -123,7 +131,8 @@ class Perturber:
         self.protected = protected_rgba
         self.cam = model.camera("agentview").id
         self.table_geom = model.geom("table").id
-        self.mat_ids = [model.material(m).id for m in TABLE_MATERIALS]
+        self.test_materials = [model.material(m).id for m in TABLE_MATERIALS]
+        self.train_materials = [model.material(m).id for m in TRAIN_TABLE_MATERIALS]
         self.clean = {
             "cam_pos": model.cam_pos[self.cam].copy(),
             "cam_quat": model.cam_quat[self.cam].copy(),
@@ -147,14 +156,17 @@ class Perturber:
         m.light_dir[:], m.light_diffuse[:] = c["light_dir"], c["light_diffuse"]
         m.geom_matid[self.table_geom] = c["table_mat"]
         if self.config.unseen_env:
-            self._unseen_env(rng)
+            self._restyle_scene(rng, self.test_materials)
+        elif self.config.randomized_scene and rng.uniform() >= CLEAN_SCENE_SHARE:
+            self._restyle_scene(rng, self.train_materials)
         if self.config.camera_jitter:
             self._jitter_camera(rng)
         self._place_distractors(data, rng, keep_out)
 
-    def _unseen_env(self, rng: np.random.Generator) -> None:
+    def _restyle_scene(self, rng: np.random.Generator, materials: list[int]) -> None:
+        """A new table (one of ``materials``, random colour), floor, wall and key light."""
         m = self.model
-        mat = self.mat_ids[int(rng.integers(len(self.mat_ids)))]
+        mat = materials[int(rng.integers(len(materials)))]
         m.geom_matid[self.table_geom] = mat
         m.mat_rgba[mat, :3] = _random_colour(rng, self.protected)
         m.mat_rgba[m.material("floor").id, :3] = rng.uniform(0.05, 0.9, 3)

@@ -125,6 +125,12 @@ def scene_xml(task: TaskDef, n_distractors: int = 0) -> str:
     <material name="table_checker" texture="checker" texrepeat="8 8" rgba="1 1 1 1" specular="0"/>
     <material name="table_grain" texture="grain" texrepeat="3 1" rgba="1 1 1 1" specular="0"/>
     <material name="table_dots" texture="dots" texrepeat="2 2" rgba="1 1 1 1" specular="0"/>
+    <texture name="tiles" type="2d" builtin="flat" mark="edge" markrgb="0.45 0.45 0.45" rgb1="1 1 1" width="64"
+             height="64"/>
+    <texture name="crosses" type="2d" builtin="flat" mark="cross" markrgb="0.5 0.5 0.5" rgb1="1 1 1" width="64"
+             height="64"/>
+    <material name="table_tiles" texture="tiles" texrepeat="6 6" rgba="1 1 1 1" specular="0"/>
+    <material name="table_crosses" texture="crosses" texrepeat="5 5" rgba="1 1 1 1" specular="0"/>
     <material name="floor" rgba="{_fmt(FLOOR_RGBA)}" specular="0"/>
     <material name="wall" rgba="{_fmt(WALL_RGBA)}" specular="0"/>
     <material name="cabinet" rgba="0.55 0.4 0.25 1" specular="0"/>
