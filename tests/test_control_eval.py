@@ -1,5 +1,6 @@
 """Evaluation end to end on the twin with a tiny trained policy: results.json, workers, report, collect --policy."""
 
+import dataclasses
 import functools
 import os
 import json
@@ -112,6 +113,11 @@ def test_recordings_survive_an_interrupted_evaluation(tiny_policy, tmp_path):
     assert [e.meta["seed"] for e in eps] == [r["seed"] for r in logged]
     assert len(eps) == 3 and np.array_equal(eps[0].actions, first[0].actions)
     assert len(list((rec / ".parts").glob("*.hdf5"))) == 3  # kept for later resumes, not read as data
+    # more episodes and another worker count resume; another head or seed would mix two evaluations
+    for change, name in (({"gripper_head": "continuous"}, "gripper_head"), ({"seed": 8}, "seed")):
+        with pytest.raises(SystemExit, match=name):
+            evaluate(dataclasses.replace(cfg, episodes=4, **change), progress=False)
+    assert len((out / "episodes.jsonl").read_text().splitlines()) == 3
 
 
 def test_auroc_hand_computed():
@@ -142,7 +148,6 @@ def test_calibrate_on_the_runs_held_out_episodes(synthetic_data, tmp_path, capsy
 def test_demo_calibrates_on_successful_rollouts_else_on_demos(tiny_policy, tmp_path):
     """The demo's thresholds come from the policy's own successful validation rollouts; with none, from the
     validation demonstrations (and the source recorded says which)."""
-    import dataclasses
     import shutil
 
     from pivla.evaluation.protocol import calibrate_on_rollouts

@@ -22,7 +22,7 @@ import numpy as np
 
 from pivla.control.math import wilson_interval
 from pivla.envs.rollout import episode_seed
-from pivla.training.checkpoint import atomic_write_json
+from pivla.training.checkpoint import atomic_write_json, read_json
 
 log = logging.getLogger(__name__)
 PARTS_DIR = ".parts"  # one file per recorded episode, merged per task at the end; hidden from dataset readers
@@ -220,6 +220,24 @@ def load_rows(path: Path) -> list[dict]:
     return rows
 
 
+# settings that do not change what an episode does, so a resumed evaluation may differ in them
+_RESUME_FREE = frozenset({"out", "episodes", "workers", "videos", "record"})
+
+
+def _check_resumable(path: Path, cfg: EvalConfig) -> None:
+    """Refuse to add episodes to an evaluation run with other settings (policy, executor, seeds, ...):
+    the merged results would mean nothing. Fields missing from an older file count as their defaults."""
+    if not path.exists():
+        return
+    before = asdict(EvalConfig(policy="", out="")) | read_json(path)
+    now = asdict(cfg)
+    changed = sorted(k for k in now if k not in _RESUME_FREE and before.get(k) != now[k])
+    if changed:
+        diff = ", ".join(f"{k}: {before.get(k)!r} -> {now[k]!r}" for k in changed)
+        raise SystemExit(f"{path.parent} holds episodes of an evaluation with other settings ({diff}); "
+                         "use another --out or delete it")
+
+
 def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     """Run (or resume) an evaluation; writes results.json, episodes.jsonl, traces/ and videos/ in ``cfg.out``."""
     from tqdm import tqdm
@@ -236,9 +254,11 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     tau_high = cfg.executor_options.get("tau_high", policy.calibration.tau_high if policy.calibration else None)
     gripper_head = policy.gripper_head
     del policy
-    atomic_write_json(out / "eval_config.json", asdict(cfg))
     log_path = out / "episodes.jsonl"
     done = {_key(r): r for r in load_rows(log_path)}
+    if done:
+        _check_resumable(out / "eval_config.json", cfg)
+    atomic_write_json(out / "eval_config.json", asdict(cfg))
     jobs = []
     for ti, spec in enumerate(tasks):
         for j in range(cfg.episodes):
