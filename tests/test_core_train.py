@@ -136,6 +136,9 @@ def test_one_head_policy_executes_its_head_and_has_no_action_uncertainty(tmp_pat
     primary = out["continuous_normalized"] if head == "continuous" else out["dequantized"]
     assert policy.action_head == head and np.allclose(out["actions_normalized"], primary)
     assert out["u_act"].shape == (policy.chunk,) and not out["u_act"].any()
+    untrained = "discrete" if head == "continuous" else "continuous"
+    with pytest.raises(ValueError, match="trained only its"):
+        load_policy(run, device="cpu", gripper_head=untrained)
     both_run = train(tiny_train_config(synthetic_data, tmp_path / "both", steps=2))
     both = load_policy(both_run, device="cpu").infer(obs)
     assert both["u_act"].min() > 0

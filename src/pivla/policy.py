@@ -51,6 +51,8 @@ class Policy:
                  action_head: str = "continuous", both_heads: bool = True, gripper_head: str | None = None):
         if gripper_head not in (None, "continuous", "discrete"):
             raise ValueError(f"gripper_head must be 'continuous' or 'discrete', got {gripper_head!r}")
+        if gripper_head not in (None, action_head) and not both_heads:
+            raise ValueError(f"gripper_head {gripper_head!r}: this policy trained only its {action_head} head")
         self.model = model.eval()
         self.cfg = model.cfg
         self.stats = stats
