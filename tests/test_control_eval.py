@@ -56,6 +56,17 @@ def test_eval_writes_complete_results(tiny_policy, tmp_path):
     assert sum(res["failure_stages"].values()) == len(failed)
 
 
+def test_bench_control_on_a_calibrated_run_times_the_same_plans(tiny_policy, capsys):
+    """A calibrated run would replan on the bench's random observations; the bench lifts its thresholds so
+    that fixed and AURD query the policy equally often and the gap is pure per-step overhead."""
+    from pivla.cli import main
+
+    assert main(["bench", "control", "--run", str(tiny_policy), "--steps", "12", "--repeats", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["policy_queries"]["aurd"] == out["policy_queries"]["fixed"]
+    assert out["encode_ms_median"] > 0 and out["query_ms_median"] > 0
+
+
 def test_workers_give_the_same_results_as_one_process(tiny_policy, tmp_path):
     one = _eval(tiny_policy, tmp_path / "one", executor="fixed")
     two = _eval(tiny_policy, tmp_path / "two", executor="fixed", workers=2)
@@ -82,6 +93,23 @@ def test_every_executor_runs_and_report_renders(tiny_policy, tmp_path):
     _eval(tiny_policy, tmp_path / "cond" / "aurd")
     report = write_report(tmp_path).read_text()
     assert "AURD minus fixed" in report and (tmp_path / "figures" / "uncertainty_timeline.png").exists()
+    assert "episode by episode" in report and "| cond | " in report  # the paired table has the condition's row
+
+
+def test_paired_outcomes_and_exact_mcnemar():
+    from pivla.evaluation.report import mcnemar_exact_p, paired_outcomes
+
+    def rows(successes):
+        return [{"task_index": 0, "episode": i, "seed": 100 + i, "success": s} for i, s in enumerate(successes)]
+
+    a, b = rows([1, 1, 0, 0, 1, 1]), rows([1, 0, 1, 0, 0, 0])
+    assert paired_outcomes(a, b) == {"both": 1, "a_only": 3, "b_only": 1, "neither": 1}
+    assert mcnemar_exact_p(3, 1) == pytest.approx(2 * (1 + 4) / 16)  # P(X <= 1), X ~ Bin(4, 1/2), doubled
+    assert mcnemar_exact_p(0, 5) == pytest.approx(2 / 32) and mcnemar_exact_p(4, 4) == 1.0 == mcnemar_exact_p(0, 0)
+    with pytest.raises(ValueError, match="same episodes"):
+        paired_outcomes(a, rows([1, 0, 1, 0, 0]))
+    with pytest.raises(ValueError, match="same episodes"):
+        paired_outcomes(a, [{**r, "seed": 0} for r in b])
 
 
 def test_rollouts_are_recorded_with_failures_for_training(tiny_policy, tmp_path):

@@ -106,6 +106,28 @@ def test_ema_target_moves_towards_online_encoder():
         torch.testing.assert_close(a, b + (o.detach() - b) * (1 - CFG.target_encoder.ema_decay))
 
 
+def test_thumbnail_target_is_the_pooled_image_and_stays_put():
+    """The weight-free target: the agent view average-pooled to grid x grid cells, layer-normalised and
+    scaled to policy units; training cannot move it and checkpoints carry nothing for it."""
+    cfg = ModelConfig(image_size=32, backbone=CFG.backbone)
+    cfg.target_encoder.name, cfg.target_encoder.grid = "thumbnail", 4
+    m = CMSModel(cfg, vocab_size=12)
+    assert m.latent_dim == 3 * 4 * 4 and not list(m.target.parameters())
+    assert not any(k.startswith("target.") for k in m.state_dict_for_checkpoint())
+    images = fake_batch(cfg)["images"]
+    cells = images[:, 0].reshape(3, 3, 4, 8, 4, 8).mean(dim=(3, 5)).reshape(3, -1)
+    expected = torch.nn.functional.layer_norm(cells, (48,)) / np.sqrt(48)
+    torch.testing.assert_close(m.target(images), expected)
+    assert m.target(fake_batch(cfg)["sp_images"]).shape == (3, 2, 48)
+    m.update_target()  # a no-op, not an error
+    torch.testing.assert_close(m.target(images), expected)
+    b = fake_batch(cfg)
+    assert _grads(m, unified_loss(m, m(b), b, LossConfig(use_rl=False))[0]) >= {"backbone", "state"}
+    with pytest.raises(ValueError, match="grid must be >= 1"):
+        cfg.target_encoder.grid = 0
+        CMSModel(cfg, vocab_size=12)
+
+
 def test_spatial_softmax_finds_a_peak_where_it_is():
     """A single strong feature at row 1, column 6 of an 8 x 8 map gives the keypoint at that pixel's
     coordinates in [-1, 1] (x from the column, y from the row)."""

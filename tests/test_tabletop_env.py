@@ -9,7 +9,8 @@ from pivla.envs.tabletop import ENV_ID, list_tasks, make_env, parse_perturb
 from pivla.envs.tabletop.bench import measure_repeatability
 from pivla.envs.rollout import run_episode
 from pivla.envs.tabletop.expert import Expert, ExpertConfig, make_expert
-from pivla.envs.tabletop.perturb import TABLE_MATERIALS, TRAIN_TABLE_MATERIALS, PerturbConfig
+from pivla.envs.tabletop.perturb import CLUTTER_SLOTS, TABLE_MATERIALS, TRAIN_TABLE_MATERIALS, PerturbConfig
+from pivla.envs.tabletop.scene import CLUTTER_SHAPES, DISTRACTOR_SHAPES
 
 
 def test_suites_and_unseen_split():
@@ -151,23 +152,31 @@ def test_perturbations_differ_between_seeds():
     assert np.array_equal(a, env.reset(seed=1)[0]["agentview_rgb"])
 
 
-def test_training_randomisation_keeps_the_test_textures_unseen():
-    """randomized_scene (training data) and unseen_env (test) share no texture; half the training scenes stay
-    clean, the rest are restyled with training materials only, and the physics is that of the clean scene."""
+def test_training_randomisation_keeps_the_test_textures_and_distractors_unseen():
+    """randomized_scene (training data) shares no texture with unseen_env and no distractor shape with the
+    distractor tests; half the training scenes keep the clean table, clutter comes and goes independently,
+    and the physics is that of the clean scene."""
     assert parse_perturb("randomized_scene").randomized_scene and parse_perturb("randomized_scene").active
     assert set(TRAIN_TABLE_MATERIALS) & set(TABLE_MATERIALS) == {"table"}  # plain: colour only
+    assert not set(CLUTTER_SHAPES) & set(DISTRACTOR_SHAPES)
+    assert parse_perturb("static_distractors,unseen_env,level=6").n_clutter == 0  # tests never get clutter
     clean = make_env("pick_place", "ball_left", image_size=48)
     env = make_env("pick_place", "ball_left", image_size=48, perturb="randomized_scene")
     table = env.model.geom("table").id
-    restyled, used = 0, set()
-    for seed in range(12):
+    clutter = [int(env.model.body_mocapid[env.model.body(f"clutter{i}").id]) for i in range(CLUTTER_SLOTS)]
+    restyled, used, counts = 0, set(), set()
+    for seed in range(16):
         a = env.reset(seed=seed)[0]["agentview_rgb"]
         b = clean.reset(seed=seed)[0]["agentview_rgb"]
         used.add(env.model.material(int(env.model.geom_matid[table])).name)
-        restyled += not np.array_equal(a, b)
+        restyled += not np.array_equal(env.model.mat_rgba, clean.model.mat_rgba)
+        n = int((env.data.mocap_pos[clutter, 2] > 0).sum())
+        counts.add(n)
+        assert np.array_equal(a, b) == (n == 0 and np.array_equal(env.model.mat_rgba, clean.model.mat_rgba))
         assert np.array_equal(env.privileged_state()["ee_pos"], clean.privileged_state()["ee_pos"])
-    assert used <= set(TRAIN_TABLE_MATERIALS) and len(used) > 1
-    assert 2 <= restyled <= 10
+    assert used <= set(TRAIN_TABLE_MATERIALS) and len(used) > 2
+    assert 3 <= restyled <= 13
+    assert 0 in counts and len(counts) > 2
 
 
 def test_servo_repeatability_is_about_ten_mm():

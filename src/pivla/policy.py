@@ -84,11 +84,12 @@ class Policy:
             if not np.all(np.isfinite(np.asarray(obs[key], dtype=np.float64))):
                 raise ValueError(f"observation {key!r} contains NaN or inf")
 
-    def _images(self, obs_list: list[dict]) -> np.ndarray:
+    def _images(self, obs_list: list[dict], cameras: int | None = None) -> np.ndarray:
+        """(N, n_cam, S, S, 3) uint8 of the first ``cameras`` cameras (default all), resized to the model's."""
         out = []
         for obs in obs_list:
             cams = []
-            for c in self.cfg.cameras:
+            for c in self.cfg.cameras[:cameras]:
                 im = np.asarray(obs[c])
                 if im.ndim != 3 or im.shape[-1] != 3 or im.dtype != np.uint8:
                     raise ValueError(f"observation {c!r} must be an HxWx3 uint8 image, got {im.shape} {im.dtype}")
@@ -142,7 +143,7 @@ class Policy:
     @torch.inference_mode()
     def encode_batch(self, obs_list: list[dict]) -> np.ndarray:
         """Enc(o) for several observations: (N, d_z) target-encoder latents in the units of ``latents``."""
-        images = images_to_tensor(self._images(obs_list), self.device)
+        images = images_to_tensor(self._images(obs_list, self.model.target.cameras), self.device)
         return self.model.target(images).float().cpu().numpy()
 
     def encode(self, obs: dict) -> np.ndarray:

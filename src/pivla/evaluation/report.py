@@ -7,6 +7,7 @@ its parent directory names the condition (e.g. ``eval/unseen_env/aurd``).
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 
@@ -24,6 +25,30 @@ def newcombe_difference(s1: int, n1: int, s2: int, n2: int) -> tuple[float, floa
     l2, u2 = wilson_interval(s2, n2)
     d = p1 - p2
     return d, d - np.sqrt((p1 - l1) ** 2 + (u2 - p2) ** 2), d + np.sqrt((u1 - p1) ** 2 + (p2 - l2) ** 2)
+
+
+def paired_outcomes(rows_a: list[dict], rows_b: list[dict]) -> dict[str, int]:
+    """Two executors on the same test episodes (same task, episode index and seed), counted as pairs: both
+    succeeded, only A, only B, neither. Raises if the two runs did not play the same episodes."""
+    a = {(r["task_index"], r["episode"]): r for r in rows_a}
+    b = {(r["task_index"], r["episode"]): r for r in rows_b}
+    if a.keys() != b.keys() or any(a[k]["seed"] != b[k]["seed"] for k in a):
+        raise ValueError("the two evaluations did not run the same episodes (tasks, episode indices or seeds differ)")
+    out = {"both": 0, "a_only": 0, "b_only": 0, "neither": 0}
+    for k in a:
+        sa, sb = bool(a[k]["success"]), bool(b[k]["success"])
+        out["both" if sa and sb else "a_only" if sa else "b_only" if sb else "neither"] += 1
+    return out
+
+
+def mcnemar_exact_p(a_only: int, b_only: int) -> float:
+    """Two-sided exact McNemar test: under "the executors are equally good" each discordant pair is a fair
+    coin, so the p-value is the binomial tail of the rarer kind, doubled (capped at 1)."""
+    n = a_only + b_only
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(min(a_only, b_only) + 1)) / 2 ** n
+    return min(1.0, 2.0 * tail)
 
 
 def find_evaluations(root: Path) -> dict[tuple[str, str], Path]:
@@ -162,6 +187,14 @@ def write_report(root: str | Path) -> Path:
         if a and f:
             d, lo, hi = newcombe_difference(a["successes"], a["episodes"], f["successes"], f["episodes"])
             lines.append(f"- {c}: {100 * d:+.1f} points [{100 * lo:+.1f}, {100 * hi:+.1f}]")
+    lines += ["", "## AURD against fixed horizon, episode by episode (same test episodes; exact McNemar test)", "",
+              "| condition | both succeed | only AURD | only fixed | neither | p |", "|---|---|---|---|---|---|"]
+    for c in conditions:
+        if (c, "aurd") in evals and (c, "fixed") in evals:
+            pairs = paired_outcomes(load_rows(evals[(c, "aurd")] / "episodes.jsonl"),
+                                    load_rows(evals[(c, "fixed")] / "episodes.jsonl"))
+            p = mcnemar_exact_p(pairs["a_only"], pairs["b_only"])
+            lines.append(f"| {c} | {pairs['both']} | {pairs['a_only']} | {pairs['b_only']} | {pairs['neither']} | {p:.2f} |")
     lines += ["", "## Execution statistics", "", "| condition | executor | mean horizon | replans | prunes | pauses | plans | control Hz |",
               "|---|---|---|---|---|---|---|---|"]
     for (c, e), r in sorted(results.items()):

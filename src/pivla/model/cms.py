@@ -140,6 +140,22 @@ class TargetEncoder(nn.Module):
             p_t.lerp_(p_o.detach().to(p_t.dtype), 1.0 - self.ema_decay)
 
 
+class Thumbnail(nn.Module):
+    """The image average-pooled to ``grid`` x ``grid`` cells: a weight-free encoder whose latent is a
+    low-resolution picture of the scene, so that L_SP predicts coarse next frames and AURD's observed latent
+    costs a pooling instead of a CNN pass. The target's layer norm removes overall brightness and contrast."""
+
+    def __init__(self, grid: int):
+        super().__init__()
+        if grid < 1:
+            raise ValueError(f"thumbnail grid must be >= 1, got {grid}")
+        self.grid = grid
+
+    def pooled(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, n_cam, 3, H, W) -> (B, n_cam * 3 * grid * grid)."""
+        return F.adaptive_avg_pool2d(images.flatten(0, 1), self.grid).reshape(images.shape[0], -1)
+
+
 def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder:
     tc = cfg.target_encoder
     if tc.name in ("ema", "frozen"):
@@ -150,7 +166,9 @@ def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder
         from pivla.model.dinov2 import Dinov2Encoder
 
         return TargetEncoder(Dinov2Encoder(tc.path, cfg.image_size), "frozen", tc.ema_decay, tc.cameras)
-    raise ValueError(f"unknown target encoder {tc.name!r}; choose 'ema', 'frozen' or 'dinov2'")
+    if tc.name == "thumbnail":
+        return TargetEncoder(Thumbnail(tc.grid), "frozen", tc.ema_decay, tc.cameras)
+    raise ValueError(f"unknown target encoder {tc.name!r}; choose 'ema', 'frozen', 'dinov2' or 'thumbnail'")
 
 
 class CMSModel(nn.Module):

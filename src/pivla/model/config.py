@@ -40,11 +40,13 @@ class BackboneConfig:
 class TargetEncoderConfig:
     """Frozen target encoder for L_SP and AURD's U_pred. ``ema``: exponential moving average of the
     policy's own vision encoder; ``frozen``: a frozen copy of it at initialisation; ``dinov2``: a local
-    DINOv2 checkpoint (``path``)."""
+    DINOv2 checkpoint (``path``); ``thumbnail``: the image average-pooled to ``grid`` x ``grid`` cells, no
+    weights (cheap enough to run after every action: AURD's per-step overhead)."""
 
     name: str = "ema"
     ema_decay: float = 0.995
     path: str = ""
+    grid: int = 12  # thumbnail cells per side
     # how many of the policy's cameras (leading ones; the agent view first) the latent describes. One by
     # default: AURD encodes every new observation, and the scene camera carries the task state.
     cameras: int = 1

@@ -86,7 +86,7 @@ def add_table_markers(robot) -> None:
     from pivla.envs.tabletop.tasks import OBJECTS
 
     env = robot.env
-    xml = scene_xml(env.task, env.perturb.n_distractors)
+    xml = scene_xml(env.task, env.perturb.n_distractors, env.perturb.n_clutter)
     geoms = []
     full = MARKER_SIZE + 2 * MARKER_BORDER
     cell = MARKER_SIZE / 6  # 4x4 data bits inside a one-cell black border

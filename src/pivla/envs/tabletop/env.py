@@ -84,7 +84,8 @@ class TabletopEnv(gymnasium.Env):
         self.servo_config = servo or ServoConfig()
         self.render_mode = render_mode
 
-        self.model = mujoco.MjModel.from_xml_string(scene_xml(self.task, self.perturb.n_distractors), asset_files())
+        xml = scene_xml(self.task, self.perturb.n_distractors, self.perturb.n_clutter)
+        self.model = mujoco.MjModel.from_xml_string(xml, asset_files())
         self.model.opt.timestep = PHYSICS_DT
         self.data = mujoco.MjData(self.model)
         self.kin = arm.Kinematics()

@@ -7,10 +7,13 @@ Spec grammar (``--perturb``), comma-separated, order-free, whitespace ignored::
             | "randomized_scene" | "level=" INT
 
 - ``unseen_env``: table colour and texture, floor and wall colours, light direction and intensity.
-- ``randomized_scene``: domain randomisation for *training* data, kept apart from ``unseen_env``: the table
-  is plain or carries a training-only texture (tiles, crosses) that no test scene uses, while the test's
-  textures (checker, gradient, speckle) never appear in training; colours, floor, wall and light vary over
-  the same ranges. A share ``CLEAN_SCENE_SHARE`` of the episodes keeps the clean scene.
+- ``randomized_scene``: domain randomisation for *training* data, kept apart from the tests: the table is
+  plain or carries a training-only texture (tiles, crosses, blotches, stripes) that no test scene uses,
+  while the test's textures (checker, gradient, speckle) never appear in training; colours, floor, wall and
+  light vary over the same ranges. A share ``CLEAN_SCENE_SHARE`` of the episodes keeps the clean scene.
+  Independently, 0..``CLUTTER_SLOTS`` pieces of training-only clutter (flat discs and cards, thin posts:
+  ``scene.CLUTTER_SHAPES``, a family no test distractor slot uses) stand on the table, random colour, size
+  and yaw, visual only like the distractors.
 - ``static_distractors`` / ``dynamic_distractors``: ``level`` extra objects (random primitive, size and
   colour) on the table; dynamic ones slide and spin during the episode. Both flags together: half move.
 - ``level=N`` (0..MAX_LEVEL): the distraction level, i.e. the number of distractors. Without a distractor
@@ -34,8 +37,9 @@ MAX_LEVEL = 6
 DEFAULT_LEVEL = 3
 FLAGS = ("unseen_env", "static_distractors", "dynamic_distractors", "camera_jitter", "randomized_scene")
 TABLE_MATERIALS = ("table", "table_checker", "table_grain", "table_dots")  # unseen_env (test)
-TRAIN_TABLE_MATERIALS = ("table", "table_tiles", "table_crosses")  # randomized_scene (training)
+TRAIN_TABLE_MATERIALS = ("table", "table_tiles", "table_crosses", "table_blotches", "table_stripes")  # training
 CLEAN_SCENE_SHARE = 0.5
+CLUTTER_SLOTS = 3
 DISTRACTOR_REGION = ((0.04, 0.34), (-0.22, 0.22))  # x, y ranges on the table
 MIN_CLEARANCE = 0.06  # m from task objects, their goals and the robot base
 
@@ -52,6 +56,11 @@ class PerturbConfig:
     @property
     def n_distractors(self) -> int:
         return self.level if (self.static_distractors or self.dynamic_distractors) else 0
+
+    @property
+    def n_clutter(self) -> int:
+        """Training-clutter slots in the scene (each episode uses 0..all of them)."""
+        return CLUTTER_SLOTS if self.randomized_scene else 0
 
     @property
     def n_dynamic(self) -> int:
@@ -141,10 +150,12 @@ class Perturber:
             "light_diffuse": model.light_diffuse.copy(),
             "table_mat": int(model.geom_matid[self.table_geom]),
         }
-        self.distractors = [model.body(f"distractor{i}") for i in range(config.n_distractors)]
-        self.mocap = [int(model.body_mocapid[b.id]) for b in self.distractors]
+        self.mocap = [int(model.body_mocapid[model.body(f"distractor{i}").id]) for i in range(config.n_distractors)]
         self.dgeoms = [model.geom(f"distractor{i}").id for i in range(config.n_distractors)]
         self.dsize = model.geom_size[self.dgeoms].copy()
+        self.clutter_mocap = [int(model.body_mocapid[model.body(f"clutter{i}").id]) for i in range(config.n_clutter)]
+        self.cgeoms = [model.geom(f"clutter{i}").id for i in range(config.n_clutter)]
+        self.csize = model.geom_size[self.cgeoms].copy()
         self.velocity = np.zeros((config.n_distractors, 2))
         self.spin = np.zeros(config.n_distractors)
 
@@ -161,7 +172,13 @@ class Perturber:
             self._restyle_scene(rng, self.train_materials)
         if self.config.camera_jitter:
             self._jitter_camera(rng)
-        self._place_distractors(data, rng, keep_out)
+        points = [np.zeros(2), *keep_out]
+        self._place_distractors(data, rng, points)
+        if self.clutter_mocap:
+            n = int(rng.integers(len(self.clutter_mocap) + 1))
+            for mocap in self.clutter_mocap[n:]:
+                data.mocap_pos[mocap] = [0.0, 0.0, -1.0]
+            self._place(data, rng, points, self.clutter_mocap[:n], self.cgeoms[:n], self.csize[:n])
 
     def _restyle_scene(self, rng: np.random.Generator, materials: list[int]) -> None:
         """A new table (one of ``materials``, random colour), floor, wall and key light."""
@@ -187,23 +204,28 @@ class Perturber:
         mujoco.mju_mulQuat(quat, self.clean["cam_quat"], turn)
         m.cam_quat[self.cam] = quat
 
-    def _place_distractors(self, data: mujoco.MjData, rng: np.random.Generator, keep_out: list[np.ndarray]) -> None:
-        points = [np.zeros(2), *keep_out]
+    def _place(self, data: mujoco.MjData, rng: np.random.Generator, points: list[np.ndarray], mocaps: list[int],
+               geoms: list[int], sizes: np.ndarray) -> None:
+        """Stand each geom upright at a random free spot (``MIN_CLEARANCE`` from ``points``, which grows),
+        scaled down by up to 40%, in a random colour and yaw."""
         (x0, x1), (y0, y1) = DISTRACTOR_REGION
-        n_static = len(self.distractors) - self.config.n_dynamic
-        for i, (mocap, geom) in enumerate(zip(self.mocap, self.dgeoms)):
+        for mocap, geom, size in zip(mocaps, geoms, sizes):
             for _ in range(200):
                 xy = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
                 if all(np.linalg.norm(xy - p) >= MIN_CLEARANCE for p in points):
                     break
             points.append(xy)
-            scale = rng.uniform(0.6, 1.0)
-            self.model.geom_size[geom] = self.dsize[i] * scale
+            self.model.geom_size[geom] = size * rng.uniform(0.6, 1.0)
             self.model.geom_rgba[geom, :3] = _random_colour(rng, self.protected)
             height = _rest_height(int(self.model.geom_type[geom]), self.model.geom_size[geom])
             data.mocap_pos[mocap] = [xy[0], xy[1], height]
             yaw = rng.uniform(-np.pi, np.pi)
             data.mocap_quat[mocap] = [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
+
+    def _place_distractors(self, data: mujoco.MjData, rng: np.random.Generator, points: list[np.ndarray]) -> None:
+        n_static = len(self.mocap) - self.config.n_dynamic
+        for i in range(len(self.mocap)):
+            self._place(data, rng, points, self.mocap[i : i + 1], self.dgeoms[i : i + 1], self.dsize[i : i + 1])
             if i >= n_static:
                 angle = rng.uniform(-np.pi, np.pi)
                 self.velocity[i] = rng.uniform(0.03, 0.07) * np.array([np.cos(angle), np.sin(angle)])

@@ -4,6 +4,9 @@ cabinet, and visual-only distractor slots. Shadows and multisampling are off: on
 
 from __future__ import annotations
 
+import functools
+
+import cv2
 import numpy as np
 
 from pivla.envs.tabletop.arm import ARM_XML
@@ -25,6 +28,13 @@ DISTRACTOR_SHAPES = (
     ("sphere", "0.017"),
     ("ellipsoid", "0.025 0.012 0.01"),
     ("box", "0.01 0.03 0.008"),
+)
+# Training-only clutter (``randomized_scene``): flat discs and cards and thin posts, a family of shapes that
+# no test distractor slot uses, so that static-distractor tests stay a test of generalisation.
+CLUTTER_SHAPES = (
+    ("cylinder", "0.03 0.002"),
+    ("box", "0.035 0.025 0.002"),
+    ("cylinder", "0.007 0.045"),
 )
 # Cabinet: outer depth (x), half width (y), height (z); the drawer slides towards the robot (-x).
 CAB_DEPTH, CAB_HALF_W, CAB_H = 0.12, 0.075, 0.065
@@ -103,12 +113,22 @@ def _distractor_xml(i: int) -> str:
     )
 
 
-def scene_xml(task: TaskDef, n_distractors: int = 0) -> str:
-    """The scene for ``task`` with ``n_distractors`` distractor slots (hidden below the floor until used)."""
+def _clutter_xml(i: int) -> str:
+    shape, size = CLUTTER_SHAPES[i % len(CLUTTER_SHAPES)]
+    return (
+        f'<body name="clutter{i}" mocap="true" pos="0 0 -1"><geom name="clutter{i}" type="{shape}" '
+        f'size="{size}" contype="0" conaffinity="0" rgba="1 1 1 1"/></body>'
+    )
+
+
+def scene_xml(task: TaskDef, n_distractors: int = 0, n_clutter: int = 0) -> str:
+    """The scene for ``task`` with ``n_distractors`` test-distractor slots and ``n_clutter`` training-clutter
+    slots (all hidden below the floor until used)."""
     cam_axes = look_at_xyaxes(AGENTVIEW_POS, AGENTVIEW_TARGET)
     objects = "".join(_object_xml(n) for n in task.objects)
     cabinet = _cabinet_xml() if task.drawer else ""
     distractors = "".join(_distractor_xml(i) for i in range(n_distractors))
+    distractors += "".join(_clutter_xml(i) for i in range(n_clutter))
     return f"""<mujoco model="pivla_tabletop_{task.name}">
   <include file="{ARM_XML.name}"/>
   <visual>
@@ -131,6 +151,10 @@ def scene_xml(task: TaskDef, n_distractors: int = 0) -> str:
              height="64"/>
     <material name="table_tiles" texture="tiles" texrepeat="6 6" rgba="1 1 1 1" specular="0"/>
     <material name="table_crosses" texture="crosses" texrepeat="5 5" rgba="1 1 1 1" specular="0"/>
+    <texture name="blotches" type="2d" file="blotches.png"/>
+    <texture name="stripes" type="2d" file="stripes.png"/>
+    <material name="table_blotches" texture="blotches" texrepeat="1 1" rgba="1 1 1 1" specular="0"/>
+    <material name="table_stripes" texture="stripes" texrepeat="2 2" rgba="1 1 1 1" specular="0"/>
     <material name="floor" rgba="{_fmt(FLOOR_RGBA)}" specular="0"/>
     <material name="wall" rgba="{_fmt(WALL_RGBA)}" specular="0"/>
     <material name="cabinet" rgba="0.55 0.4 0.25 1" specular="0"/>
@@ -151,6 +175,26 @@ def scene_xml(task: TaskDef, n_distractors: int = 0) -> str:
 </mujoco>"""
 
 
+def _png(gray: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", np.repeat(np.round(gray * 255).astype(np.uint8)[..., None], 3, axis=-1))
+    if not ok:
+        raise RuntimeError("OpenCV could not encode a training texture as PNG")
+    return buf.tobytes()
+
+
+@functools.cache
+def _training_textures() -> dict[str, bytes]:
+    """Grey training-only table textures (the material colour tints them), drawn once from a fixed seed:
+    ``blotches`` (large soft light and dark patches, ~15 cm on the table) and ``stripes`` (planks of random
+    width). Neither is a pattern of the test's textures (checker, gradient, speckle)."""
+    rng = np.random.default_rng(20261123)
+    noise = cv2.resize(rng.normal(size=(6, 6)), (128, 128), interpolation=cv2.INTER_CUBIC)
+    noise = (noise - noise.min()) / (noise.max() - noise.min())
+    widths = rng.integers(4, 17, 40)
+    bands = np.repeat(rng.uniform(0.55, 1.0, len(widths)), widths)[:128]
+    return {"blotches.png": _png(0.5 + 0.5 * noise), "stripes.png": _png(np.tile(bands[:, None], (1, 128)))}
+
+
 def asset_files() -> dict[str, bytes]:
     """Files the scene XML includes, for ``MjModel.from_xml_string(xml, assets)``."""
-    return {ARM_XML.name: ARM_XML.read_bytes()}
+    return {ARM_XML.name: ARM_XML.read_bytes(), **_training_textures()}
