@@ -12,10 +12,11 @@ def test_bench_infer_json(capsys):
 
 
 def test_bench_control_json(capsys):
-    assert main(["bench", "control", "--steps", "6", "--repeats", "1", "--json"]) == 0
+    assert main(["bench", "control", "--steps", "6", "--repeats", "1", "--loop-episodes", "0", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert {"fixed_ms_per_step", "aurd_ms_per_step", "aurd_overhead_pct"} <= set(out)
     assert out["policy_queries"]["aurd"] == out["policy_queries"]["fixed"]  # same plans: the gap is pure overhead
+    assert not any(k.startswith("loop_") for k in out)
 
 
 def test_bench_train_json_for_both_token_layouts(capsys):

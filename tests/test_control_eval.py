@@ -58,13 +58,18 @@ def test_eval_writes_complete_results(tiny_policy, tmp_path):
 
 def test_bench_control_on_a_calibrated_run_times_the_same_plans(tiny_policy, capsys):
     """A calibrated run would replan on the bench's random observations; the bench lifts its thresholds so
-    that fixed and AURD query the policy equally often and the gap is pure per-step overhead."""
+    that fixed and AURD query the policy equally often and the gap is pure per-step overhead, both for the
+    controller alone and in closed loop with the twin."""
     from pivla.cli import main
 
-    assert main(["bench", "control", "--run", str(tiny_policy), "--steps", "12", "--repeats", "1", "--json"]) == 0
+    assert main(["bench", "control", "--run", str(tiny_policy), "--steps", "12", "--repeats", "1",
+                 "--loop-episodes", "1", "--json"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["policy_queries"]["aurd"] == out["policy_queries"]["fixed"]
     assert out["encode_ms_median"] > 0 and out["query_ms_median"] > 0
+    # closed loop in the twin: identical plans give identical episodes, so the timing compares like with like
+    assert out["loop_same_episodes"] is True and out["loop_steps"] > 0
+    assert out["loop_aurd_ms_per_step"] > 0 and out["loop_fixed_ms_per_step"] > 0
 
 
 def test_workers_give_the_same_results_as_one_process(tiny_policy, tmp_path):

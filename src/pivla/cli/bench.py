@@ -33,6 +33,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
     p.add_argument("--run", help="a trained run directory (default: random weights)")
     p.add_argument("--steps", type=int, default=200)
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--loop-episodes", type=int, default=5,
+                   help="also time whole episodes in the tabletop twin (0: controller only)")
     p.set_defaults(func=bench_control)
     p = sub.add_parser("hf", help="CPU cost of the tiny random hf backbone stack (or a local checkpoint)")
     p.add_argument("--path", default="", help="local Llava-style checkpoint (default: a tiny random one)")
