@@ -27,6 +27,11 @@ from pivla.envs.rollout import episode_seed
 from pivla.policy import Calibration
 
 
+def _executor(name: str, policy):
+    """Fixed horizon at the policy's nominal horizon (AURD's own default), so both plan alike."""
+    return make_executor(name, horizon=policy.horizon) if name == "fixed" else make_executor(name)
+
+
 def run_bench(args: argparse.Namespace) -> dict:
     from pivla.cli.bench import default_policy, random_obs
 
@@ -43,7 +48,7 @@ def run_bench(args: argparse.Namespace) -> dict:
     queries = {}
     for _ in range(repeats):
         for name in ("fixed", "aurd"):
-            ex = make_executor(name, horizon=policy.horizon) if name == "fixed" else make_executor(name)
+            ex = _executor(name, policy)
             ex.reset()
             ex.act(policy, observations[0])  # warm-up
             ex.reset()
@@ -87,13 +92,12 @@ def closed_loop(policy, episodes: int, repeats: int) -> dict:
     seeds = [episode_seed(0, i) for i in range(episodes)]
     per_step: dict[str, list[float]] = {"fixed": [], "aurd": []}
     outcomes: dict[str, list[tuple[int, bool, int]]] = {}
-    run_episode(env, policy, make_executor("fixed", horizon=policy.horizon), seed=seeds[0], max_steps=5)  # warm-up
+    run_episode(env, policy, _executor("fixed", policy), seed=seeds[0], max_steps=5)  # warm-up
     for _ in range(repeats):
         for name in ("fixed", "aurd"):
-            ex_kw = {"horizon": policy.horizon} if name == "fixed" else {}
             t0, n, outcome = time.perf_counter(), 0, []
             for seed in seeds:
-                res = run_episode(env, policy, make_executor(name, **ex_kw), seed=seed)
+                res = run_episode(env, policy, _executor(name, policy), seed=seed)
                 n += res.steps
                 outcome.append((res.steps, res.success, len(res.plans)))
             per_step[name].append((time.perf_counter() - t0) / n)
