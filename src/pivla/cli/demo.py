@@ -26,7 +26,8 @@ EXECUTORS = ("aurd", "fixed", "ensemble", "adahorizon")
 
 @dataclass
 class DemoConfig:
-    """Sizes of the full run (<= 30 min on 2 CPU cores) and of ``--quick`` (<= 5 min)."""
+    """Sizes of the full run (38 min on 2 AVX2-only cores; 19 min with 40 demos on 2 AVX-512 cores; the
+    target is 30, docs/results.md) and of ``--quick`` (<= 5 min)."""
 
     # per task; 40 -> 60 (same training steps) lifted every condition on two seeds, unseen scenes most (session 8)
     train_episodes: int = 60
