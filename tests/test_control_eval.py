@@ -101,6 +101,21 @@ def test_every_executor_runs_and_report_renders(tiny_policy, tmp_path):
     assert "episode by episode" in report and "| cond | " in report  # the paired table has the condition's row
 
 
+def test_report_takes_distraction_level_0_from_in_distribution(tiny_policy, tmp_path, monkeypatch):
+    """The demo does not replay its in-distribution episodes as level 0 of the Fig. 8 sweep: the report
+    borrows them, and says so."""
+    from pivla.evaluation import report as rep
+
+    _eval(tiny_policy, tmp_path / "in_distribution" / "aurd")
+    _eval(tiny_policy, tmp_path / "distraction_level_2" / "aurd", perturb="level=2")
+    seen = {}
+    monkeypatch.setattr(rep, "plot_levels", lambda levels, path: seen.update(levels))
+    text = rep.write_report(tmp_path).read_text()
+    in_dist = json.loads((tmp_path / "in_distribution" / "aurd" / "results.json").read_text())
+    assert sorted(seen["aurd"]) == [0, 2] and seen["aurd"][0] == in_dist
+    assert "Level 0 of aurd is the in_distribution evaluation" in text
+
+
 def test_paired_outcomes_and_exact_mcnemar():
     from pivla.evaluation.report import mcnemar_exact_p, paired_outcomes
 

@@ -74,7 +74,7 @@ def test_resume_matches_uninterrupted_run(tmp_path, synthetic_data):
     interrupted.run_dir.mkdir(parents=True)
     while interrupted.step < 13:  # dies after step 13; the last checkpoint is step 10
         if interrupted.step % 10 == 0:
-            interrupted._set_values(interrupted._state_values(interrupted.train_set))
+            interrupted._refresh_values()
         interrupted.train_step()
         if interrupted.step == 10:
             interrupted._save()

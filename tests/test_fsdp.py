@@ -51,7 +51,7 @@ interrupted = Trainer(half)
 interrupted.run_dir.mkdir(parents=True, exist_ok=True)
 while interrupted.step < 4:
     if interrupted.step % cfg.value_refresh_every == 0:
-        interrupted._set_values(interrupted._state_values(interrupted.train_set))
+        interrupted._refresh_values()
     interrupted.train_step()
     if interrupted.step == 3:
         interrupted._save()

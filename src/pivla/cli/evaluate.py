@@ -59,6 +59,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--out", required=True)
         parser.add_argument("--steps", type=int, default=protocol.STEPS, help="training steps per variant (the demo's)")
         parser.add_argument("--batch-size", type=int, default=protocol.BATCH_SIZE)
+        parser.add_argument("--image-size", type=int, default=None,
+                            help="policy resolution in px (default: the demo's, pivla demo --help)")
         parser.add_argument("--train-seed", type=int, default=0)
         parser.add_argument("--val-seed", type=int, default=1, help="seed of the validation rollouts")
         parser.add_argument("--val-episodes", type=int, default=5, help="validation rollouts per task")
@@ -136,7 +138,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
+    from pivla.cli.demo import DemoConfig
     from pivla.evaluation.ablate import AblationConfig, run_ablation
+    from pivla.model.config import ModelConfig
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = AblationConfig(data=args.data, val=args.val, out=args.out, steps=args.steps, batch_size=args.batch_size,
@@ -144,7 +148,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
                          train_seed=args.train_seed, val_seed=args.val_seed, val_episodes=args.val_episodes,
                          perturb=args.perturb,
                          realism=args.realism, workers=args.workers,
-                         variants=tuple(args.variants.split(",")) if args.variants else None)
+                         variants=tuple(args.variants.split(",")) if args.variants else None,
+                         model=ModelConfig(image_size=args.image_size or DemoConfig.image_size))
     table = run_ablation(cfg)
     print(table)
     return 0

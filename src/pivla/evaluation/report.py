@@ -230,9 +230,15 @@ def write_report(root: str | Path) -> Path:
         lv = _level(c)
         if lv is not None:
             levels.setdefault(e, {})[lv] = r
+    borrowed = sorted(e for e in levels if 0 not in levels[e] and ("in_distribution", e) in results)
+    for e in borrowed:  # no distractors is the in-distribution condition: its episodes need not be played twice
+        levels[e][0] = results[("in_distribution", e)]
     if levels:
         plot_levels(levels, figs / "distraction_levels.png")
-        lines += ["", "## Success against distraction level (paper Fig. 8)", "", "![](figures/distraction_levels.png)"]
+        lines += ["", "## Success against distraction level (paper Fig. 8)", ""]
+        if borrowed:
+            lines += [f"Level 0 of {', '.join(borrowed)} is the in_distribution evaluation.", ""]
+        lines += ["![](figures/distraction_levels.png)"]
     path = root / "report.md"
     atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
     return path
