@@ -109,21 +109,21 @@ def run_demo(args: argparse.Namespace) -> int:
 
     if args.image_size:
         cfg = dataclasses.replace(cfg, image_size=args.image_size)
-    model = ModelConfig(image_size=cfg.image_size)
     common = ["--env", "tabletop", "--suite", "pick_place", "--realism", args.realism, "--workers", str(cfg.workers)]
     train_dir, val_dir, run_dir = out / "data" / "train", out / "data" / "val", out / "policy"
     if _stage("collect train demos", (train_dir / "rock_right_demo.hdf5").exists()):
-        recipe = ["--noise", str(cfg.noise), "--miss", str(cfg.miss), "--image-size", str(model.image_size)]
+        recipe = ["--noise", str(cfg.noise), "--miss", str(cfg.miss), "--image-size", str(cfg.image_size)]
         recipe += ["--perturb", cfg.train_perturb] if cfg.train_perturb else []
         timed("collect_train", lambda: cli(["collect", *common, "--episodes", str(cfg.train_episodes), "--out", str(train_dir),
                                             "--seed", str(args.seed), *recipe]))
     if _stage("collect validation demos", (val_dir / "rock_right_demo.hdf5").exists()):
         timed("collect_val", lambda: cli(["collect", *common, "--episodes", str(cfg.val_episodes), "--out", str(val_dir),
-                                          "--seed", str(args.seed + 1), "--image-size", str(model.image_size)]))
+                                          "--seed", str(args.seed + 1), "--image-size", str(cfg.image_size)]))
     status = run_dir / "status.json"
     trained = status.exists() and json.loads(status.read_text()).get("done", False)
     if _stage("train", trained):
-        tc = train_config(str(train_dir), str(run_dir), cfg.steps, cfg.batch_size, args.seed, model=model)
+        tc = train_config(str(train_dir), str(run_dir), cfg.steps, cfg.batch_size, args.seed,
+                          model=ModelConfig(image_size=cfg.image_size))
         timed("train", lambda: train(tc, resume=(run_dir / "checkpoints").exists()))
     rollouts_dir = out / "data" / "val_rollouts"
     if _stage("validation rollouts", (rollouts_dir / "rock_right_rollouts.hdf5").exists()):

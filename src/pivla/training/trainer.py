@@ -278,7 +278,6 @@ class Trainer:
 
     # -- value refresh for the RL term -------------------------------------------------------------------
     @torch.no_grad()
-    @torch.no_grad()
     def _state_values(self, dataset: ChunkDataset, batch: int = 256) -> list[np.ndarray]:
         """V(s_t) of every training frame: one forward pass over the whole dataset."""
         self.model.eval()
