@@ -179,6 +179,7 @@ def test_calibrate_on_the_runs_held_out_episodes(synthetic_data, tmp_path, capsy
     """``pivla calibrate --held-out`` uses exactly the episodes split.json kept out of training."""
     from pivla.cli import main
     from pivla.cli.evaluate import held_out_episodes
+    from pivla.control.calibrate import CalibrationConfig
 
     run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, val_fraction=0.25))
     split = json.loads((run / "split.json").read_text())
@@ -189,6 +190,14 @@ def test_calibrate_on_the_runs_held_out_episodes(synthetic_data, tmp_path, capsy
     assert main(["calibrate", "--policy", str(run), "--data", str(synthetic_data), "--held-out"]) == 0
     saved = json.loads((run / "calibration.json").read_text())
     assert saved["source"].endswith("(held-out split)") and saved["tau_high"] >= saved["tau_low"]
+    stats = json.loads((run / "calibration_stats.json").read_text())
+    defaults = CalibrationConfig()
+    assert stats["percentiles"] == {"tau_low": defaults.tau_low_pct, "tau_high": defaults.tau_high_pct,
+                                    "v_thresh": defaults.v_pct}
+    assert main(["calibrate", "--policy", str(run), "--data", str(synthetic_data), "--held-out", "--tau-high-pct", "60"]) == 0
+    lower = json.loads((run / "calibration.json").read_text())
+    assert json.loads((run / "calibration_stats.json").read_text())["percentiles"]["tau_high"] == 60
+    assert lower["tau_low"] == saved["tau_low"] and lower["tau_high"] <= saved["tau_high"]
     with pytest.raises(SystemExit, match="trained on"):
         held_out_episodes(str(run), episodes[:-1])
 

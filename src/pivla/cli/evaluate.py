@@ -42,12 +42,14 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
     elif command == "calibrate":
         parser.add_argument("--policy", required=True, help="run directory")
         parser.add_argument("--data", required=True, help="validation dataset (successful episodes are used)")
-        parser.add_argument("--tau-low-pct", type=float, default=50.0)
-        parser.add_argument("--tau-high-pct", type=float, default=95.0)
-        parser.add_argument("--v-pct", type=float, default=10.0)
-        parser.add_argument("--eta", type=float, default=0.7)
-        parser.add_argument("--pred-baseline", default="none", choices=["none", "episode"],
-                            help="episode: U_pred above the episode's smallest so far (AURD then uses the same)")
+        # defaults live in CalibrationConfig (imported lazily: it pulls in torch)
+        parser.add_argument("--tau-low-pct", type=float, help="percentile of U for tau_low (default P50)")
+        parser.add_argument("--tau-high-pct", type=float,
+                            help="percentile of U for tau_high, and of U_act for AdaHorizon's act_high (default P99)")
+        parser.add_argument("--v-pct", type=float, help="percentile of V for V_thresh (default P10)")
+        parser.add_argument("--eta", type=float, help="weight of U_act in U (default 0.7)")
+        parser.add_argument("--pred-baseline", choices=["none", "episode"],
+                            help="episode: U_pred above the episode's smallest so far, AURD then uses the same (default none)")
         parser.add_argument("--held-out", action="store_true",
                             help="--data is the run's training data: use only the episodes its split.json held out")
         parser.set_defaults(func=cmd_calibrate)
@@ -125,8 +127,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from pivla.data.format import read_dataset
 
     policy = load_policy(args.policy, device="cpu")
-    cfg = CalibrationConfig(args.tau_low_pct, args.tau_high_pct, args.v_pct, args.eta,
-                            pred_baseline=args.pred_baseline)
+    given = {"tau_low_pct": args.tau_low_pct, "tau_high_pct": args.tau_high_pct, "v_pct": args.v_pct,
+             "eta": args.eta, "pred_baseline": args.pred_baseline}
+    cfg = CalibrationConfig(**{k: v for k, v in given.items() if v is not None})
     episodes = read_dataset(args.data)
     source = str(args.data)
     if args.held_out:
