@@ -27,7 +27,8 @@ EXECUTORS = ("aurd", "fixed", "ensemble", "adahorizon")
 @dataclass
 class DemoConfig:
     """Sizes of the full run (at 96 px: 38 min on 2 AVX2-only cores, 19 min with 40 demos on 2 AVX-512 cores;
-    at 80 px about 33 min on the AVX2 cores; the target is 30, docs/results.md) and of ``--quick`` (<= 5 min)."""
+    at 80 px with one L_SP frame per sample 29-31 min on the AVX2 cores, with two 32 min; the target is 30,
+    docs/results.md) and of ``--quick`` (<= 5 min)."""
 
     # per task; 40 -> 60 (same training steps) lifted every condition on two seeds, unseen scenes most (session 8)
     train_episodes: int = 60
@@ -69,6 +70,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--realism", default="ideal", choices=["ideal", "servo"])
     parser.add_argument("--steps", type=int, default=None, help="override the number of training steps")
+    parser.add_argument("--train-episodes", type=int, default=None,
+                        help=f"training demonstrations per task (default {DemoConfig.train_episodes})")
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--image-size", type=int, default=None,
                         help=f"camera and policy resolution in px (default {DemoConfig.image_size})")
@@ -97,6 +100,10 @@ def run_demo(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, steps=args.steps)
     if args.workers:
         cfg = dataclasses.replace(cfg, workers=args.workers)
+    if args.train_episodes:
+        cfg = dataclasses.replace(cfg, train_episodes=args.train_episodes)
+    if args.image_size:
+        cfg = dataclasses.replace(cfg, image_size=args.image_size)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
@@ -107,8 +114,6 @@ def run_demo(args: argparse.Namespace) -> int:
         fn()
         timings[name] = round(time.time() - t, 1)
 
-    if args.image_size:
-        cfg = dataclasses.replace(cfg, image_size=args.image_size)
     common = ["--env", "tabletop", "--suite", "pick_place", "--realism", args.realism, "--workers", str(cfg.workers)]
     train_dir, val_dir, run_dir = out / "data" / "train", out / "data" / "val", out / "policy"
     if _stage("collect train demos", (train_dir / "rock_right_demo.hdf5").exists()):

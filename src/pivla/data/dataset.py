@@ -121,7 +121,7 @@ def gae(rewards: np.ndarray, values: np.ndarray, dones: np.ndarray, gamma: float
 class ChunkDataset:
     """Samples (o_t, l, chunk a_{t:t+K}, next-observation targets, advantages, returns)."""
 
-    def __init__(self, episodes: list[PreparedEpisode], cfg: ModelConfig, sp_steps: int = 2):
+    def __init__(self, episodes: list[PreparedEpisode], cfg: ModelConfig, sp_steps: int = 1):
         if not episodes:
             raise DatasetError("no episodes to train on")
         self.episodes = episodes
