@@ -44,7 +44,7 @@ def test_dataset_loads_through_training_pipeline(dataset):
     cfg = ModelConfig(image_size=32)
     stats = fit_norm_stats(episodes, cfg)
     text = WordTokenizer.build([e.instruction for e in episodes])
-    ds = ChunkDataset([prepare_episode(e, cfg, stats, text) for e in episodes], cfg)
+    ds = ChunkDataset([prepare_episode(e, cfg, stats, text) for e in episodes], cfg, sp_steps=1)
     sample = ds.sample(0, np.random.default_rng(0))
     assert sample["images"].shape == (2, 32, 32, 3) and sample["actions"].shape == (cfg.chunk, 7)
     assert np.isfinite(sample["actions"]).all()

@@ -26,7 +26,7 @@ EXECUTORS = ("aurd", "fixed", "ensemble", "adahorizon")
 
 @dataclass
 class DemoConfig:
-    """Sizes of the full run (the target is 30 min on 2 CPU cores; on this project's AVX2-only box about 28 min,
+    """Sizes of the full run (the target is 30 min on 2 CPU cores; on this project's AVX2-only box about 27 min,
     docs/results.md, session 12) and of ``--quick`` (<= 5 min)."""
 
     # per task; 40 -> 60 (same training steps) lifted every condition on two seeds, unseen scenes most (session 8);

@@ -49,7 +49,8 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--v-pct", type=float, help="percentile of V for V_thresh (default P10)")
         parser.add_argument("--eta", type=float, help="weight of U_act in U (default 0.7)")
         parser.add_argument("--pred-baseline", choices=["none", "episode"],
-                            help="episode: U_pred above the episode's smallest so far, AURD then uses the same (default none)")
+                            help="episode: U_pred above the episode's smallest so far, AURD then uses the same "
+                                 "(default none)")
         parser.add_argument("--held-out", action="store_true",
                             help="--data is the run's training data: use only the episodes its split.json held out")
         parser.set_defaults(func=cmd_calibrate)

@@ -6,9 +6,10 @@ AURD sees it online (the newest prediction error before step k; 0 for k = 0). Th
 of these in-distribution signals: tau_low = P50(U), tau_high = P99(U), V_thresh = P10(V) by default, so
 that on data like the validation set AURD rarely intervenes, and it intervenes when signals leave that
 range. P99, not P95: with P95 the demo's 80-px policy replanned ~3x as often as at 96 px and lost to a fixed
-horizon on validation episodes; P99 took it level with fixed (docs/results.md, session 11). The same percentiles of U_act alone give AdaHorizon its thresholds (``act_low``, ``act_high``):
-EverydayVLA's absolute 0.03 / 0.06 belong to its model's action scale, and on ours they made it replan
-after every action (docs/results.md).
+horizon on validation episodes; P99 took it level with fixed (docs/results.md, session 11). The same
+percentiles of U_act alone give AdaHorizon its thresholds (``act_low``, ``act_high``): EverydayVLA's
+absolute 0.03 / 0.06 belong to its model's action scale, and on ours they made it replan after every
+action (docs/results.md).
 """
 
 from __future__ import annotations

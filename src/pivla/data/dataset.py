@@ -121,7 +121,8 @@ def gae(rewards: np.ndarray, values: np.ndarray, dones: np.ndarray, gamma: float
 class ChunkDataset:
     """Samples (o_t, l, chunk a_{t:t+K}, next-observation targets, advantages, returns)."""
 
-    def __init__(self, episodes: list[PreparedEpisode], cfg: ModelConfig, sp_steps: int = 1):
+    def __init__(self, episodes: list[PreparedEpisode], cfg: ModelConfig, sp_steps: int):
+        """``sp_steps``: chunk steps per sample whose next observation is an L_SP target (``LossConfig.sp_steps``)."""
         if not episodes:
             raise DatasetError("no episodes to train on")
         self.episodes = episodes
