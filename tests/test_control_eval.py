@@ -70,6 +70,12 @@ def test_bench_control_on_a_calibrated_run_times_the_same_plans(tiny_policy, cap
     # closed loop in the twin: identical plans give identical episodes, so the timing compares like with like
     assert out["loop_same_episodes"] is True and out["loop_steps"] > 0
     assert out["loop_aurd_ms_per_step"] > 0 and out["loop_fixed_ms_per_step"] > 0
+    # the executors' own time is part of the step (AURD's includes its encodings)
+    assert 0 < out["loop_fixed_executor_ms"] < out["loop_fixed_ms_per_step"]
+    assert 0 < out["loop_aurd_executor_ms"] < out["loop_aurd_ms_per_step"]
+    # on a CPU with onnxruntime installed the target encoder runs there, and PyTorch's encoding is timed too
+    if out["encoder_runtime"] == "onnx":
+        assert out["encode_ms_median_torch"] > 0
 
 
 def test_workers_give_the_same_results_as_one_process(tiny_policy, tmp_path):

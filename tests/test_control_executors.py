@@ -20,6 +20,7 @@ class ScriptedPolicy:
         self.latent_error = latent_error or {}
         self.calibration = calibration or Calibration(tau_low=0.2, tau_high=0.5, v_thresh=0.3, eta=0.7)
         self.queries = 0
+        self.encoded = []
         self.run_dir = None
 
     def infer(self, obs):
@@ -34,6 +35,7 @@ class ScriptedPolicy:
                 "u_act": action_uncertainty(a, deq), "values": self.values, "latents": np.zeros((8, 4)), "value_now": np.float32(1)}
 
     def encode(self, obs):
+        self.encoded.append(obs["t"])
         z = np.zeros(4)
         z[0] = self.latent_error.get(obs["t"], 0.0)
         return z
@@ -61,6 +63,15 @@ def test_aurd_completes_nominal_horizon_when_certain():
     assert [a[0] for a in acts] == [1] * 5 + [2] * 5 + [3]
     assert ex.plans == [(5, "complete"), (5, "complete")]
     assert all(r["u"] == 0 for r in ex.trace)
+    # only observations a decision reads are encoded: not a plan's first step, nor the one after its last
+    assert p.encoded == [1, 2, 3, 4, 6, 7, 8, 9]
+
+
+def test_aurd_after_check_encodes_every_executed_step():
+    p = ScriptedPolicy()
+    ex = make_executor("aurd", check="after")
+    run(ex, p, 11)
+    assert p.encoded == [1, 2, 3, 4, 5, 6, 7, 8, 9, 10]
 
 
 def test_aurd_replans_when_prediction_error_exceeds_tau_high():

@@ -18,6 +18,8 @@ from pivla.data.dataset import proprio_vector, resize_images
 from pivla.data.normalize import NormStats
 from pivla.data.text import WordTokenizer, load_text_tokenizer
 from pivla.data.transforms import images_to_tensor
+from pivla.model import encoder_runtime as er
+from pivla.model.backbone import ConvEncoder
 from pivla.model.cms import CMSModel
 from pivla.training import checkpoint as ck
 
@@ -48,7 +50,8 @@ def select_device(device: str = "auto") -> torch.device:
 class Policy:
     def __init__(self, model: CMSModel, stats: NormStats, text: WordTokenizer, run_dir: Path | None = None,
                  calibration: Calibration | None = None, device: torch.device | None = None,
-                 action_head: str = "continuous", both_heads: bool = True, gripper_head: str | None = None):
+                 action_head: str = "continuous", both_heads: bool = True, gripper_head: str | None = None,
+                 encoder_runtime: str = "auto"):
         if gripper_head not in (None, "continuous", "discrete"):
             raise ValueError(f"gripper_head must be 'continuous' or 'discrete', got {gripper_head!r}")
         if gripper_head not in (None, action_head) and not both_heads:
@@ -73,6 +76,37 @@ class Policy:
         # continuous gripper at +1, set the object down and never let go; docs/results.md, session 6).
         # So with two trained heads the gripper follows Eq. 12 and the arm the continuous head.
         self.gripper_head = gripper_head or ("discrete" if both_heads else action_head)
+        # AURD encodes every new observation: on a CPU the default target encoder runs on ONNX Runtime
+        # ("auto"), where one encoding takes ~0.65x as long (pivla.model.encoder_runtime); "torch" forces PyTorch
+        self.set_encoder_runtime(encoder_runtime)
+
+    def set_encoder_runtime(self, runtime: str) -> None:
+        """Where ``encode`` runs the target encoder: "torch", "onnx" (an error if impossible) or "auto" (ONNX
+        Runtime when on a CPU with the small backbone's CNN and onnxruntime installed). The runtime in use
+        is ``encoder_runtime``."""
+        if runtime not in er.RUNTIMES:
+            raise ValueError(f"encoder_runtime must be one of {er.RUNTIMES}, got {runtime!r}")
+        self._onnx_encoder, self.encoder_runtime = None, "torch"
+        if runtime == "torch":
+            return
+        target = self.model.target
+        reason = None
+        if self.device.type != "cpu":
+            reason = f"the policy runs on {self.device.type}"
+        elif not isinstance(target.encoder, ConvEncoder):
+            reason = f"only the small backbone's CNN is exported, not {type(target.encoder).__name__}"
+        elif not er.onnx_available():
+            reason = "onnxruntime, onnx or onnxscript is not installed"
+        if reason is None:
+            shape = (target.cameras, 3, self.cfg.image_size, self.cfg.image_size)
+            self._onnx_encoder = er.onnx_target_encoder(target, shape, self.run_dir)
+            reason = None if self._onnx_encoder is not None else "export or check failed (logged above)"
+        if reason is not None:
+            if runtime == "onnx":
+                raise RuntimeError(f"encoder_runtime 'onnx': {reason}")
+            log.debug("target encoder on PyTorch: %s", reason)
+            return
+        self.encoder_runtime = "onnx"
 
     # -- transforms ------------------------------------------------------------------------------------
     def _check_obs(self, obs: dict) -> None:
@@ -144,6 +178,8 @@ class Policy:
     def encode_batch(self, obs_list: list[dict]) -> np.ndarray:
         """Enc(o) for several observations: (N, d_z) target-encoder latents in the units of ``latents``."""
         images = images_to_tensor(self._images(obs_list, self.model.target.cameras), self.device)
+        if self._onnx_encoder is not None and len(obs_list) == 1:  # AURD's case; batches (calibration) stay in torch
+            return self._onnx_encoder(images.numpy())
         return self.model.target(images).float().cpu().numpy()
 
     def encode(self, obs: dict) -> np.ndarray:
@@ -154,9 +190,11 @@ class Policy:
         return self.stats.action.unnormalize(normalized)
 
 
-def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0, gripper_head: str | None = None) -> Policy:
+def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0, gripper_head: str | None = None,
+                encoder_runtime: str = "auto") -> Policy:
     """Load a run directory written by ``pivla train`` (safetensors + JSON only). ``gripper_head``: which head
-    drives the gripper (default: the discrete one when both were trained, see ``Policy``)."""
+    drives the gripper (default: the discrete one when both were trained, see ``Policy``); ``encoder_runtime``:
+    where the target encoder runs (``auto``: ONNX Runtime on a CPU when possible, see ``Policy``)."""
     run_dir = Path(run_dir)
     if threads > 0:
         torch.set_num_threads(threads)
@@ -173,4 +211,4 @@ def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0, gri
     head = "continuous" if cfg.loss.use_continuous else "discrete"
     both = cfg.loss.use_continuous and cfg.loss.use_discrete
     return Policy(model.to(dev), stats, text, run_dir, calib, dev, action_head=head, both_heads=both,
-                  gripper_head=gripper_head)
+                  gripper_head=gripper_head, encoder_runtime=encoder_runtime)

@@ -35,6 +35,9 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--loop-episodes", type=int, default=5,
                    help="also time whole episodes in the tabletop twin (0: controller only)")
+    p.add_argument("--encoder-runtime", choices=["auto", "torch", "onnx"], default="auto",
+                   help="where the target encoder runs (auto: ONNX Runtime on a CPU when installed); with ONNX "
+                        "Runtime, one PyTorch encoding is timed too, for comparison")
     p.set_defaults(func=bench_control)
     p = sub.add_parser("hf", help="CPU cost of the tiny random hf backbone stack (or a local checkpoint)")
     p.add_argument("--path", default="", help="local Llava-style checkpoint (default: a tiny random one)")
@@ -62,7 +65,7 @@ def emit(result: dict, as_json: bool) -> int:
     return 0
 
 
-def default_policy(run: str | None, image_size: int | None = None):
+def default_policy(run: str | None, image_size: int | None = None, encoder_runtime: str = "auto"):
     """A trained policy, or the default configuration with random weights (speed does not depend on them)."""
     from pivla import load_policy
     from pivla.data.normalize import ActionStats, NormStats, StandardStats
@@ -72,11 +75,11 @@ def default_policy(run: str | None, image_size: int | None = None):
     from pivla.policy import Policy
 
     if run:
-        return load_policy(run, device="cpu")
+        return load_policy(run, device="cpu", encoder_runtime=encoder_runtime)
     cfg = ModelConfig() if image_size is None else ModelConfig(image_size=image_size)
     text = WordTokenizer.build(["pick up the red block and move it to the left of the table"], cfg.max_text_len)
     stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7), StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim))
-    return Policy(CMSModel(cfg, len(text.vocab)), stats, text)
+    return Policy(CMSModel(cfg, len(text.vocab)), stats, text, encoder_runtime=encoder_runtime)
 
 
 def random_obs(policy, rng: np.random.Generator) -> dict:

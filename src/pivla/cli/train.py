@@ -49,7 +49,7 @@ def info(args: argparse.Namespace) -> int:
     from pivla.training import checkpoint as ck
 
     run = Path(args.run)
-    policy = load_policy(run, device="cpu")
+    policy = load_policy(run, device="cpu", encoder_runtime="torch")
     status = ck.read_json(run / ck.STATUS_FILE) if (run / ck.STATUS_FILE).exists() else {}
     data = {
         "run": str(run),

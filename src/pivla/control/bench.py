@@ -4,7 +4,8 @@ Two figures, both with the thresholds lifted so that AURD makes exactly fixed ho
 
 - *controller only*: both executors drive the same policy over the same recorded observations, no
   simulator, so only control cost is timed. Fixed horizon pays one policy query every H steps; AURD pays
-  the same queries plus encoding every new observation and the decision.
+  the same queries plus encoding each new observation a decision reads (not the one after a completed
+  plan: the replan starts at k = 0 with U_pred = 0), and the decision.
 - *closed loop* (``loop_*``): whole episodes in the tabletop twin (physics, cameras, executor), same
   seeds for both, as the paper times its controller (+1.2 ms at 105 Hz). With the same plans the two
   executors act identically, so the trajectories match and the gap is again AURD's alone.
@@ -36,7 +37,7 @@ def run_bench(args: argparse.Namespace) -> dict:
     from pivla.cli.bench import default_policy, random_obs
 
     torch.set_num_threads(getattr(args, "threads", 2))
-    policy = default_policy(getattr(args, "run", None))
+    policy = default_policy(getattr(args, "run", None), encoder_runtime=getattr(args, "encoder_runtime", "auto"))
     # thresholds high enough that AURD completes every nominal horizon, also for a calibrated run (random
     # observations would make it replan): same queries as fixed, so the difference is exactly the per-step
     # encoding + decision overhead
@@ -68,6 +69,7 @@ def run_bench(args: argparse.Namespace) -> dict:
             policy.infer(obs)
             query.append(time.perf_counter() - t1)
         encode.append(t1 - t0)
+    other = _torch_encode_ms(policy, observations, steps)
     loop = closed_loop(policy, args.loop_episodes, repeats) if args.loop_episodes > 0 else {}
     return {
         "fixed_ms_per_step": round(fixed * 1e3, 3),
@@ -77,34 +79,63 @@ def run_bench(args: argparse.Namespace) -> dict:
         "encode_ms_median": round(float(np.median(encode)) * 1e3, 3),
         "query_ms_median": round(float(np.median(query)) * 1e3, 3),
         "target_encoder": policy.cfg.target_encoder.name,
+        "encoder_runtime": policy.encoder_runtime,
+        **other,
         "policy_queries": queries,
         "steps": steps, "repeats": repeats,
         **loop,
     }
 
 
+def _torch_encode_ms(policy, observations: list[dict], steps: int) -> dict:
+    """Median ms of one encoding with PyTorch when the policy encodes on ONNX Runtime (same weights, same
+    observations): what the runtime saves, measured in the same run."""
+    if policy.encoder_runtime != "onnx":
+        return {}
+    policy.set_encoder_runtime("torch")
+    times = []
+    for t in range(steps):
+        t0 = time.perf_counter()
+        policy.encode(observations[t % len(observations)])
+        times.append(time.perf_counter() - t0)
+    policy.set_encoder_runtime("onnx")
+    return {"encode_ms_median_torch": round(float(np.median(times)) * 1e3, 3)}
+
+
 def closed_loop(policy, episodes: int, repeats: int) -> dict:
     """Median ms per control step of whole twin episodes (``pick_place`` task 0, fixed seeds) under each
-    executor; the policy's thresholds must already be lifted so that both execute the same plans."""
+    executor; the policy's thresholds must already be lifted so that both execute the same plans.
+
+    ``loop_*_executor_ms`` is the executor's own share of a step (its ``act`` calls: policy queries,
+    encodings, decisions), timed inside the same episodes. Their difference is AURD's cost where it runs,
+    with caches shared with the renderer, but without the simulator's run-to-run noise that the whole-step
+    difference carries; ``loop_executor_overhead_pct`` relates it to fixed horizon's whole step."""
     from pivla.envs import make_env
 
     env = make_env("tabletop", "pick_place", 0, image_size=policy.cfg.image_size, cameras=tuple(policy.cfg.cameras))
     seeds = [episode_seed(0, i) for i in range(episodes)]
     per_step: dict[str, list[float]] = {"fixed": [], "aurd": []}
+    executor: dict[str, list[float]] = {"fixed": [], "aurd": []}
     outcomes: dict[str, list[tuple[int, bool, int]]] = {}
     run_episode(env, policy, _executor("fixed", policy), seed=seeds[0], max_steps=5)  # warm-up
     for _ in range(repeats):
         for name in ("fixed", "aurd"):
-            t0, n, outcome = time.perf_counter(), 0, []
+            t0, n, acting, outcome = time.perf_counter(), 0, 0.0, []
             for seed in seeds:
                 res = run_episode(env, policy, _executor(name, policy), seed=seed)
                 n += res.steps
+                acting += sum(res.step_times)
                 outcome.append((res.steps, res.success, len(res.plans)))
             per_step[name].append((time.perf_counter() - t0) / n)
+            executor[name].append(acting / n)
             outcomes[name] = outcome
     env.close()
     fixed, aurd = float(np.median(per_step["fixed"])), float(np.median(per_step["aurd"]))
+    fixed_ex, aurd_ex = float(np.median(executor["fixed"])), float(np.median(executor["aurd"]))
     return {
+        "loop_fixed_executor_ms": round(fixed_ex * 1e3, 3),
+        "loop_aurd_executor_ms": round(aurd_ex * 1e3, 3),
+        "loop_executor_overhead_pct": round(100 * (aurd_ex - fixed_ex) / fixed, 1),
         "loop_fixed_ms_per_step": round(fixed * 1e3, 3),
         "loop_aurd_ms_per_step": round(aurd * 1e3, 3),
         "loop_overhead_pct": round(100 * (aurd / fixed - 1), 1),

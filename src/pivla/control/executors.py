@@ -240,7 +240,10 @@ class AURDExecutor(BaseExecutor):
         H = self.horizon or policy.horizon
         ended = None
         z_obs = None
-        if self._plan is not None and self._k > 0:
+        # encode only what a decision reads: not after a plan's last step (it completes, and the new plan's
+        # first step has U_pred = 0), unless check="after" tests that step first
+        continues = self._plan is not None and 0 < self._k < min(H, len(self._plan.actions))
+        if self._plan is not None and self._k > 0 and (continues or self.check == "after"):
             z_obs = policy.encode(obs)
         if self.check == "after" and self._plan is not None and self._k > 0:
             k = self._k - 1  # the step just executed, now observed

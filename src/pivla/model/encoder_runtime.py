@@ -1,0 +1,130 @@
+"""The target encoder on ONNX Runtime, for AURD's per-step cost on a CPU.
+
+AURD encodes every new observation with the target encoder (its U_pred, Eq. 13), so that encoding is most
+of what AURD adds to a control step over a fixed horizon. At batch 1 the default CNN spends much of its
+eager-PyTorch time dispatching small operators; on ONNX Runtime one encoding takes ~0.65x as long, and
+AURD's own time per step in the twin falls from ~2.0 to ~1.3 ms over fixed horizon's (docs/results.md,
+session 13). Only single-observation inference changes: training, calibration and the weights are PyTorch's.
+
+The graph is exported from the loaded weights (``torch.onnx.export(dynamo=True)``, a few seconds), cached
+in the run directory under a digest of those weights, and checked against PyTorch on every load: an
+unreadable cache is rebuilt, and a graph that disagrees with PyTorch is not used.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import logging
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+ONNX_PREFIX = "target_encoder-"  # + the first 16 hex digits of the weights' digest + ".onnx"
+RUNTIMES = ("auto", "torch", "onnx")
+
+
+def onnx_available() -> bool:
+    """ONNX Runtime to run the graph, and onnx + onnxscript to export it (``torch.onnx.export(dynamo=True)``)."""
+    return all(importlib.util.find_spec(m) is not None for m in ("onnxruntime", "onnx", "onnxscript"))
+
+
+def weights_digest(module: torch.nn.Module) -> str:
+    """SHA-256 over the module's state (names, shapes and bytes): which weights a cached graph belongs to."""
+    h = hashlib.sha256()
+    for name, t in sorted(module.state_dict().items()):
+        h.update(name.encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def export_onnx(module: torch.nn.Module, image_shape: tuple[int, int, int]) -> bytes:
+    """(1, *image_shape) images in [0, 1] -> (1, d_z) latents as an ONNX graph. Batch 1 is fixed: it is AURD's
+    case, and ONNX Runtime plans a static graph better (0.85 against 1.03 ms with a dynamic batch axis)."""
+    example = torch.rand(1, *image_shape)
+    # the exporter's progress notes ("torchvision is not installed", optimiser passes) are not ours to show
+    loggers = [logging.getLogger(name) for name in ("torch.onnx", "onnxscript", "onnx_ir")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(module.eval(), (example,), dynamo=True, verbose=False,
+                                        input_names=["images"], output_names=["latents"])
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
+    return program.model_proto.SerializeToString()
+
+
+class OnnxEncoder:
+    """A callable: float32 (1, *image_shape) array -> float32 (1, d_z) array, on ONNX Runtime's CPU provider.
+
+    One thread that does not spin between calls: between two encodings the control loop steps the simulator
+    and renders, and a spinning thread would take a core from it; at batch 1 a second thread's wake-up costs
+    more than it saves.
+    """
+
+    def __init__(self, model_bytes: bytes):
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = 1
+        opts.inter_op_num_threads = 1
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        opts.log_severity_level = 3
+        self.session = ort.InferenceSession(model_bytes, opts, providers=["CPUExecutionProvider"])
+
+    def __call__(self, images: np.ndarray) -> np.ndarray:
+        return self.session.run(None, {"images": np.ascontiguousarray(images, dtype=np.float32)})[0]
+
+
+def onnx_target_encoder(module: torch.nn.Module, image_shape: tuple[int, int, int], cache_dir: Path | None = None,
+                        atol: float = 1e-5, rtol: float = 1e-3) -> OnnxEncoder | None:
+    """The module on ONNX Runtime, or None (logged) when it cannot be exported or disagrees with PyTorch.
+
+    ``cache_dir``: where ``target_encoder-<digest>.onnx`` is read from if these exact weights were exported
+    before, and written to (atomically) otherwise, replacing graphs of other weights; an unwritable
+    directory only costs the export again on the next load.
+    """
+    from pivla.training.checkpoint import atomic_write_bytes
+
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"{ONNX_PREFIX}{weights_digest(module)[:16]}.onnx"
+    encoder = None
+    if path is not None and path.is_file():
+        try:
+            encoder = OnnxEncoder(path.read_bytes())
+        except Exception as e:  # noqa: BLE001 - ONNX Runtime raises its own types for a damaged file
+            log.info("target encoder: cached %s unreadable (%s); exporting again", path, e)
+    if encoder is None:
+        try:
+            model_bytes = export_onnx(module, image_shape)
+        except Exception as e:  # noqa: BLE001 - the exporter raises many types; PyTorch still works
+            log.warning("target encoder: ONNX export failed (%s: %s); encoding with PyTorch", type(e).__name__, e)
+            return None
+        encoder = OnnxEncoder(model_bytes)
+        if path is not None:
+            try:
+                atomic_write_bytes(path, model_bytes)
+                for old in path.parent.glob(f"{ONNX_PREFIX}*.onnx"):
+                    if old != path:
+                        old.unlink(missing_ok=True)
+            except OSError as e:
+                log.info("target encoder: could not cache %s (%s)", path, e)
+    probe = torch.rand(1, *image_shape, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        expected = module(probe).float().numpy()
+    got = encoder(probe.numpy())
+    if got.shape != expected.shape or not np.allclose(got, expected, atol=atol, rtol=rtol):
+        err = float(np.abs(got - expected).max()) if got.shape == expected.shape else float("nan")
+        log.warning("target encoder: ONNX graph disagrees with PyTorch (max error %.3g); encoding with PyTorch", err)
+        return None
+    return encoder

@@ -1,0 +1,89 @@
+"""The target encoder on ONNX Runtime: same latents as PyTorch, a cache keyed on the weights, and clear
+fallbacks (tiny random model)."""
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from pivla.data.normalize import ActionStats, NormStats, StandardStats
+from pivla.data.text import WordTokenizer
+from pivla.model import encoder_runtime as er
+from pivla.model.cms import CMSModel
+from pivla.model.config import BackboneConfig, ModelConfig, TargetEncoderConfig
+from pivla.policy import Policy
+
+pytestmark = pytest.mark.skipif(not er.onnx_available(), reason="onnxruntime / onnxscript not installed")
+
+
+def make_policy(run_dir, runtime="onnx", seed=0, target="ema"):
+    torch.manual_seed(seed)
+    cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32)),
+                      target_encoder=TargetEncoderConfig(name=target, grid=4))
+    text = WordTokenizer.build(["pick up the block"], cfg.max_text_len)
+    stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7), StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim))
+    return Policy(CMSModel(cfg, len(text.vocab)), stats, text, run_dir=run_dir, encoder_runtime=runtime)
+
+
+def obs(seed):
+    rng = np.random.default_rng(seed)
+    o = {c: rng.integers(0, 255, (32, 32, 3), dtype=np.uint8) for c in ("agentview_rgb", "eye_in_hand_rgb")}
+    o.update(ee_pos=np.zeros(3, np.float32), ee_ori=np.zeros(3, np.float32), gripper_states=np.zeros(2, np.float32),
+             instruction="pick up the block")
+    return o
+
+
+def test_onnx_latents_match_torch_and_the_graph_is_cached(tmp_path):
+    p = make_policy(tmp_path)
+    assert p.encoder_runtime == "onnx"
+    cached = list(tmp_path.glob("target_encoder-*.onnx"))
+    assert len(cached) == 1
+    p_torch = make_policy(tmp_path, runtime="torch")
+    for s in range(3):
+        np.testing.assert_allclose(p.encode(obs(s)), p_torch.encode(obs(s)), atol=1e-5, rtol=1e-4)
+    # a batch (calibration) goes through PyTorch and agrees with the single encodings
+    batch = p.encode_batch([obs(0), obs(1)])
+    np.testing.assert_allclose(batch[1], p.encode(obs(1)), atol=1e-5, rtol=1e-4)
+    # switching the runtime of a loaded policy
+    p.set_encoder_runtime("torch")
+    assert p.encoder_runtime == "torch" and p._onnx_encoder is None
+
+
+def test_cache_is_reused_rebuilt_when_damaged_and_replaced_for_new_weights(tmp_path, monkeypatch):
+    make_policy(tmp_path)
+    (path,) = tmp_path.glob("target_encoder-*.onnx")
+
+    def no_export(*args, **kwargs):
+        raise AssertionError("exported although the cached graph belongs to these weights")
+
+    with monkeypatch.context() as m:
+        m.setattr(er, "export_onnx", no_export)
+        assert make_policy(tmp_path).encoder_runtime == "onnx"
+    path.write_bytes(b"not an onnx graph")
+    p = make_policy(tmp_path)
+    assert p.encoder_runtime == "onnx" and path.read_bytes() != b"not an onnx graph"
+    make_policy(tmp_path, seed=1)  # other weights: their own graph, the old one removed
+    (new,) = tmp_path.glob("target_encoder-*.onnx")
+    assert new != path
+
+
+def test_a_graph_that_disagrees_with_torch_is_not_used(tmp_path, monkeypatch, caplog):
+    real = er.OnnxEncoder.__call__
+    monkeypatch.setattr(er.OnnxEncoder, "__call__", lambda self, images: real(self, images) + 0.1)
+    with caplog.at_level(logging.WARNING):
+        p = make_policy(tmp_path, runtime="auto")
+    assert p.encoder_runtime == "torch" and "disagrees with PyTorch" in caplog.text
+    with pytest.raises(RuntimeError, match="encoder_runtime 'onnx'"):
+        make_policy(tmp_path, runtime="onnx")
+
+
+def test_runtime_choice_is_checked(tmp_path):
+    with pytest.raises(ValueError, match="encoder_runtime must be one of"):
+        make_policy(tmp_path, runtime="tensorrt")
+    # a weight-free thumbnail target is not exported: auto stays on PyTorch, onnx says why
+    assert make_policy(tmp_path, runtime="auto", target="thumbnail").encoder_runtime == "torch"
+    with pytest.raises(RuntimeError, match="only the small backbone's CNN"):
+        make_policy(tmp_path, runtime="onnx", target="thumbnail")
+    # no run directory: exported in memory, nothing written
+    assert make_policy(None).encoder_runtime == "onnx"
