@@ -68,14 +68,33 @@ def test_cache_is_reused_rebuilt_when_damaged_and_replaced_for_new_weights(tmp_p
     assert new != path
 
 
-def test_a_graph_that_disagrees_with_torch_is_not_used(tmp_path, monkeypatch, caplog):
+def test_a_graph_that_disagrees_with_torch_is_not_used_nor_cached(tmp_path, monkeypatch, caplog):
     real = er.OnnxEncoder.__call__
-    monkeypatch.setattr(er.OnnxEncoder, "__call__", lambda self, images: real(self, images) + 0.1)
-    with caplog.at_level(logging.WARNING):
-        p = make_policy(tmp_path, runtime="auto")
-    assert p.encoder_runtime == "torch" and "disagrees with PyTorch" in caplog.text
-    with pytest.raises(RuntimeError, match="encoder_runtime 'onnx'"):
-        make_policy(tmp_path, runtime="onnx")
+    with monkeypatch.context() as m:
+        m.setattr(er.OnnxEncoder, "__call__", lambda self, images: real(self, images) + 0.1)
+        with caplog.at_level(logging.WARNING):
+            p = make_policy(tmp_path, runtime="auto")
+        assert p.encoder_runtime == "torch" and "disagrees with PyTorch" in caplog.text
+        assert not list(tmp_path.glob("target_encoder-*.onnx"))
+        with pytest.raises(RuntimeError, match="encoder_runtime 'onnx'"):
+            make_policy(tmp_path, runtime="onnx")
+    # a cached graph that disagrees (the encoder's code changed since) is exported again, then used
+    make_policy(tmp_path)
+    real_export, calls, exports = er.export_onnx, [], []
+
+    def off_on_first_call(self, images):  # the cached graph's check fails, the fresh graph's passes
+        calls.append(1)
+        return real(self, images) + (0.1 if len(calls) == 1 else 0.0)
+
+    def counted_export(*args):
+        exports.append(1)
+        return real_export(*args)
+
+    with monkeypatch.context() as m:
+        m.setattr(er.OnnxEncoder, "__call__", off_on_first_call)
+        m.setattr(er, "export_onnx", counted_export)
+        assert make_policy(tmp_path).encoder_runtime == "onnx"
+    assert len(exports) == 1 and len(list(tmp_path.glob("target_encoder-*.onnx"))) == 1
 
 
 def test_runtime_choice_is_checked(tmp_path):

@@ -8,7 +8,7 @@ session 13). Only single-observation inference changes: training, calibration an
 
 The graph is exported from the loaded weights (``torch.onnx.export(dynamo=True)``, a few seconds), cached
 in the run directory under a digest of those weights, and checked against PyTorch on every load: an
-unreadable cache is rebuilt, and a graph that disagrees with PyTorch is not used.
+unreadable or disagreeing cache is exported again, and a fresh graph that disagrees is not used.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import torch
 
 log = logging.getLogger(__name__)
 
-ONNX_PREFIX = "target_encoder-"  # + the first 16 hex digits of the weights' digest + ".onnx"
+ONNX_PREFIX = "target_encoder-"  # + 16 hex digits of a digest of the weights and image shape + ".onnx"
 RUNTIMES = ("auto", "torch", "onnx")
 
 
@@ -89,42 +89,52 @@ def onnx_target_encoder(module: torch.nn.Module, image_shape: tuple[int, int, in
                         atol: float = 1e-5, rtol: float = 1e-3) -> OnnxEncoder | None:
     """The module on ONNX Runtime, or None (logged) when it cannot be exported or disagrees with PyTorch.
 
-    ``cache_dir``: where ``target_encoder-<digest>.onnx`` is read from if these exact weights were exported
-    before, and written to (atomically) otherwise, replacing graphs of other weights; an unwritable
-    directory only costs the export again on the next load.
+    ``cache_dir``: where ``target_encoder-<digest>.onnx`` is read from if these weights and this image shape
+    were exported before, and written to (atomically, once the graph agrees with PyTorch) otherwise,
+    replacing graphs of other weights; an unwritable directory only costs the export again on the next load.
+    A cached graph that no longer agrees (say, the encoder's code changed) is exported again.
     """
     from pivla.training.checkpoint import atomic_write_bytes
 
-    path = None
-    if cache_dir is not None:
-        path = Path(cache_dir) / f"{ONNX_PREFIX}{weights_digest(module)[:16]}.onnx"
-    encoder = None
-    if path is not None and path.is_file():
-        try:
-            encoder = OnnxEncoder(path.read_bytes())
-        except Exception as e:  # noqa: BLE001 - ONNX Runtime raises its own types for a damaged file
-            log.info("target encoder: cached %s unreadable (%s); exporting again", path, e)
-    if encoder is None:
-        try:
-            model_bytes = export_onnx(module, image_shape)
-        except Exception as e:  # noqa: BLE001 - the exporter raises many types; PyTorch still works
-            log.warning("target encoder: ONNX export failed (%s: %s); encoding with PyTorch", type(e).__name__, e)
-            return None
-        encoder = OnnxEncoder(model_bytes)
-        if path is not None:
-            try:
-                atomic_write_bytes(path, model_bytes)
-                for old in path.parent.glob(f"{ONNX_PREFIX}*.onnx"):
-                    if old != path:
-                        old.unlink(missing_ok=True)
-            except OSError as e:
-                log.info("target encoder: could not cache %s (%s)", path, e)
     probe = torch.rand(1, *image_shape, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
         expected = module(probe).float().numpy()
-    got = encoder(probe.numpy())
-    if got.shape != expected.shape or not np.allclose(got, expected, atol=atol, rtol=rtol):
-        err = float(np.abs(got - expected).max()) if got.shape == expected.shape else float("nan")
+
+    def error(encoder: OnnxEncoder) -> float | None:
+        """Largest deviation from PyTorch on the probe, or None when within tolerance."""
+        got = encoder(probe.numpy())
+        if got.shape == expected.shape and np.allclose(got, expected, atol=atol, rtol=rtol):
+            return None
+        return float(np.abs(got - expected).max()) if got.shape == expected.shape else float("inf")
+
+    path = None
+    if cache_dir is not None:
+        key = hashlib.sha256(f"{weights_digest(module)} {tuple(image_shape)}".encode()).hexdigest()[:16]
+        path = Path(cache_dir) / f"{ONNX_PREFIX}{key}.onnx"
+    if path is not None and path.is_file():
+        try:
+            encoder = OnnxEncoder(path.read_bytes())
+            if error(encoder) is None:
+                return encoder
+            log.info("target encoder: cached %s disagrees with PyTorch; exporting again", path)
+        except Exception as e:  # noqa: BLE001 - ONNX Runtime raises its own types for a damaged file
+            log.info("target encoder: cached %s unreadable (%s); exporting again", path, e)
+    try:
+        model_bytes = export_onnx(module, image_shape)
+    except Exception as e:  # noqa: BLE001 - the exporter raises many types; PyTorch still works
+        log.warning("target encoder: ONNX export failed (%s: %s); encoding with PyTorch", type(e).__name__, e)
+        return None
+    encoder = OnnxEncoder(model_bytes)
+    err = error(encoder)
+    if err is not None:
         log.warning("target encoder: ONNX graph disagrees with PyTorch (max error %.3g); encoding with PyTorch", err)
         return None
+    if path is not None:
+        try:
+            atomic_write_bytes(path, model_bytes)
+            for old in path.parent.glob(f"{ONNX_PREFIX}*.onnx"):
+                if old != path:
+                    old.unlink(missing_ok=True)
+        except OSError as e:
+            log.info("target encoder: could not cache %s (%s)", path, e)
     return encoder
