@@ -77,7 +77,7 @@ class Policy:
         # So with two trained heads the gripper follows Eq. 12 and the arm the continuous head.
         self.gripper_head = gripper_head or ("discrete" if both_heads else action_head)
         # AURD encodes every new observation: on a CPU the default target encoder runs on ONNX Runtime
-        # ("auto"), where one encoding takes ~0.65x as long (pivla.model.encoder_runtime); "torch" forces PyTorch
+        # ("auto"), where one encoding takes 0.5-0.7x as long (pivla.model.encoder_runtime); "torch" forces PyTorch
         self.set_encoder_runtime(encoder_runtime)
 
     def set_encoder_runtime(self, runtime: str) -> None:
