@@ -89,16 +89,18 @@ def run_bench(args: argparse.Namespace) -> dict:
 
 def _torch_encode_ms(policy, observations: list[dict], steps: int) -> dict:
     """Median ms of one encoding with PyTorch when the policy encodes on ONNX Runtime (same weights, same
-    observations): what the runtime saves, measured in the same run."""
+    observations): what the runtime saves, measured in the same run. A second ``Policy`` on the same model
+    keeps PyTorch, so the ONNX graph is neither rebuilt nor reloaded."""
+    from pivla.policy import Policy
+
     if policy.encoder_runtime != "onnx":
         return {}
-    policy.set_encoder_runtime("torch")
+    torch_policy = Policy(policy.model, policy.stats, policy.text, device=policy.device, encoder_runtime="torch")
     times = []
     for t in range(steps):
         t0 = time.perf_counter()
-        policy.encode(observations[t % len(observations)])
+        torch_policy.encode(observations[t % len(observations)])
         times.append(time.perf_counter() - t0)
-    policy.set_encoder_runtime("onnx")
     return {"encode_ms_median_torch": round(float(np.median(times)) * 1e3, 3)}
 
 

@@ -240,12 +240,12 @@ class AURDExecutor(BaseExecutor):
         H = self.horizon or policy.horizon
         ended = None
         z_obs = None
+        observed = self._plan is not None and self._k > 0  # o is the outcome of this plan's step k - 1
         # encode only what a decision reads: not after a plan's last step (it completes, and the new plan's
         # first step has U_pred = 0), unless check="after" tests that step first
-        continues = self._plan is not None and 0 < self._k < min(H, len(self._plan.actions))
-        if self._plan is not None and self._k > 0 and (continues or self.check == "after"):
+        if observed and (self.check == "after" or self._k < min(H, len(self._plan.actions))):
             z_obs = policy.encode(obs)
-        if self.check == "after" and self._plan is not None and self._k > 0:
+        if self.check == "after" and observed:
             k = self._k - 1  # the step just executed, now observed
             u_pred = self._u_pred(z_obs, self._plan.latents[k], baseline)
             u = eta * self._plan.u_act[k] + (1 - eta) * u_pred

@@ -3,7 +3,8 @@
 AURD encodes every new observation with the target encoder (its U_pred, Eq. 13), so that encoding is most
 of what AURD adds to a control step over a fixed horizon. At batch 1 the default CNN spends much of its
 eager-PyTorch time dispatching small operators; on ONNX Runtime one encoding takes 0.5-0.7x as long,
-and AURD's own time per step in the twin falls by ~0.6 ms (docs/results.md, session 13). Only single-observation inference changes: training, calibration and the weights are PyTorch's.
+and AURD's own time per step in the twin falls by ~0.6 ms (docs/results.md, session 13). Only
+single-observation inference changes: training, calibration and the weights are PyTorch's.
 
 The graph is exported from the loaded weights (``torch.onnx.export(dynamo=True)``, a few seconds), cached
 in the run directory under a digest of those weights, and checked against PyTorch on every load: an
