@@ -46,6 +46,7 @@ def test_eval_writes_complete_results(tiny_policy, tmp_path):
     assert 0 <= lo <= res["success_rate"] <= hi <= 1
     on_disk = json.loads((tmp_path / "e" / "results.json").read_text())
     assert on_disk["episodes"] == 4 and on_disk["executor"] == "aurd"
+    assert on_disk["encoder_runtime"] in {"onnx", "torch"}  # where AURD's observed latents were computed
     assert len(list((tmp_path / "e" / "traces").glob("*.json"))) == 4
     assert len(list((tmp_path / "e" / "videos").glob("*.mp4"))) == 1
     trace = json.loads(next((tmp_path / "e" / "traces").glob("*.json")).read_text())["trace"]

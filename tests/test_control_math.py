@@ -91,3 +91,14 @@ def test_surprise_is_prediction_error_above_the_episode_floor():
     assert surprise(0.3, None) == 0.3  # nothing seen yet: the raw error
     assert surprise(0.5, 0.2) == pytest.approx(0.3)
     assert surprise(0.1, 0.2) == 0.0  # never negative
+
+
+def test_control_math_does_not_import_torch():
+    """The control math is numpy in, numpy out: using it (analysis scripts, the arm's host) costs no torch."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, pivla.control as c; "
+            "p = np.full((2, 7, 4), 0.25); c.dequantize(p, np.linspace(-1, 1, 4)); "
+            "assert 'torch' not in sys.modules, 'pivla.control imported torch'")
+    subprocess.run([sys.executable, "-c", code], check=True)

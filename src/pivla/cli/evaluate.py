@@ -42,15 +42,18 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
     elif command == "calibrate":
         parser.add_argument("--policy", required=True, help="run directory")
         parser.add_argument("--data", required=True, help="validation dataset (successful episodes are used)")
-        # defaults live in CalibrationConfig (imported lazily: it pulls in torch)
-        parser.add_argument("--tau-low-pct", type=float, help="percentile of U for tau_low (default P50)")
+        from pivla.control.calibrate import CalibrationConfig  # the command needs torch anyway
+
+        d = CalibrationConfig()
+        parser.add_argument("--tau-low-pct", type=float, help=f"percentile of U for tau_low (default P{d.tau_low_pct:g})")
         parser.add_argument("--tau-high-pct", type=float,
-                            help="percentile of U for tau_high, and of U_act for AdaHorizon's act_high (default P99)")
-        parser.add_argument("--v-pct", type=float, help="percentile of V for V_thresh (default P10)")
-        parser.add_argument("--eta", type=float, help="weight of U_act in U (default 0.7)")
+                            help=f"percentile of U for tau_high, and of U_act for AdaHorizon's act_high "
+                                 f"(default P{d.tau_high_pct:g})")
+        parser.add_argument("--v-pct", type=float, help=f"percentile of V for V_thresh (default P{d.v_pct:g})")
+        parser.add_argument("--eta", type=float, help=f"weight of U_act in U (default {d.eta:g})")
         parser.add_argument("--pred-baseline", choices=["none", "episode"],
                             help="episode: U_pred above the episode's smallest so far, AURD then uses the same "
-                                 "(default none)")
+                                 f"(default {d.pred_baseline})")
         parser.add_argument("--held-out", action="store_true",
                             help="--data is the run's training data: use only the episodes its split.json held out")
         parser.set_defaults(func=cmd_calibrate)

@@ -111,7 +111,8 @@ def _run_job(job: tuple[int, str, int, bool]) -> dict:
                          max_steps=cfg.max_steps, keep_episode=keep_frames or cfg.record is not None,
                          reset_options=options)
     row = {"task": task_name, "task_index": task_index, "episode": episode, **(options or {}), **result.summary(),
-           "wall_s": time.perf_counter() - t0, "trace": result.trace, "plan_events": result.plans}
+           "wall_s": time.perf_counter() - t0, "encoder_runtime": policy.encoder_runtime, "trace": result.trace,
+           "plan_events": result.plans}
     if result.episode is not None:
         row["_episode"] = result.episode
         row["_video"] = keep_frames
@@ -189,6 +190,8 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict
         "steps": steps,
         "mean_steps": steps / n if n else 0.0,
         "sim_wall_s": float(sum(r["wall_s"] for r in rows)),
+        # where the target encoder ran (AURD's U_pred); episodes logged before this field existed are left out
+        "encoder_runtime": ",".join(sorted({r["encoder_runtime"] for r in rows if "encoder_runtime" in r})) or None,
         "failure_prediction": failure_prediction(rows, tau_high),
         "failure_stages": failure_stages(rows),
     }
