@@ -32,8 +32,8 @@ def tiny_policy(tmp_path_factory):
     return run
 
 
-def _eval(run, out, executor="aurd", workers=1, **kw):
-    cfg = EvalConfig(policy=str(run), out=str(out), tasks="0,1", executor=executor, episodes=2, seed=7,
+def _eval(run, out, executor="aurd", workers=1, seed=7, **kw):
+    cfg = EvalConfig(policy=str(run), out=str(out), tasks="0,1", executor=executor, episodes=2, seed=seed,
                      workers=workers, max_steps=12, videos=1, **kw)
     return evaluate(cfg, progress=False)
 
@@ -79,13 +79,36 @@ def test_bench_control_on_a_calibrated_run_times_the_same_plans(tiny_policy, cap
         assert out["encode_ms_median_torch"] > 0
 
 
+def _episodes(d):
+    """Everything an episode did (outcome, plans, every traced signal), without timings."""
+    rows = [json.loads(line) for line in (d / "episodes.jsonl").read_text().splitlines()]
+    return sorted(({k: v for k, v in r.items() if k not in ("wall_s", "control_ms_mean")} for r in rows),
+                  key=lambda r: (r["task_index"], r["episode"]))
+
+
+def _same_episodes(a, b):
+    assert [(r["task"], r["episode"], r["seed"], r["success"], r["steps"], r["plan_events"]) for r in a] == \
+           [(r["task"], r["episode"], r["seed"], r["success"], r["steps"], r["plan_events"]) for r in b]
+    for ra, rb in zip(a, b):
+        for sa, sb in zip(ra["trace"], rb["trace"], strict=True):
+            assert sa.keys() == sb.keys()
+            for k in sa:
+                if isinstance(sa[k], float):
+                    assert sa[k] == pytest.approx(sb[k], rel=1e-4, abs=1e-6), k
+                else:
+                    assert sa[k] == sb[k], k
+
+
 def test_workers_give_the_same_results_as_one_process(tiny_policy, tmp_path):
-    one = _eval(tiny_policy, tmp_path / "one", executor="fixed")
-    two = _eval(tiny_policy, tmp_path / "two", executor="fixed", workers=2)
-    rows = lambda d: sorted((json.loads(l)["task"], json.loads(l)["episode"], json.loads(l)["success"], json.loads(l)["steps"])  # noqa: E731
-                            for l in (d / "episodes.jsonl").read_text().splitlines())
-    assert rows(tmp_path / "one") == rows(tmp_path / "two")
-    assert one["success_rate"] == two["success_rate"]
+    one = _eval(tiny_policy, tmp_path / "one")
+    two = _eval(tiny_policy, tmp_path / "two", workers=2)
+    _same_episodes(_episodes(tmp_path / "one"), _episodes(tmp_path / "two"))
+    assert one["success_rate"] == two["success_rate"] and one["replans"] == two["replans"]
+    # the comparison can tell runs apart: other seeds give other traces (seed labels aside)
+    _eval(tiny_policy, tmp_path / "other", seed=8)
+    other = [r | {"seed": o["seed"]} for r, o in zip(_episodes(tmp_path / "other"), _episodes(tmp_path / "one"))]
+    with pytest.raises(AssertionError):
+        _same_episodes(_episodes(tmp_path / "one"), other)
 
 
 def test_eval_resumes_from_episode_log(tiny_policy, tmp_path):
@@ -147,9 +170,11 @@ def test_rollouts_are_recorded_with_failures_for_training(tiny_policy, tmp_path)
     eps = read_dataset(tmp_path / "roll")
     assert len(eps) == 2 and all(e.source == "policy" for e in eps)
     assert all(len(e.rewards) == len(e) for e in eps)
-    with pytest.raises(SystemExit, match="--miss"):
-        main(["collect", "--env", "tabletop", "--suite", "pick_place", "--episodes", "1", "--miss", "0.3",
-              "--policy", str(tiny_policy), "--out", str(tmp_path / "roll2")])
+    assert all(e.meta["split"] == "train" for e in eps)  # training rollouts, not test episodes
+    for flag in (["--miss", "0.3"], ["--paraphrase"], ["--image-size", "64"]):  # expert-only: refused, not ignored
+        with pytest.raises(SystemExit, match=flag[0]):
+            main(["collect", "--env", "tabletop", "--suite", "pick_place", "--episodes", "1", *flag,
+                  "--policy", str(tiny_policy), "--out", str(tmp_path / "roll2")])
 
 
 def test_recordings_survive_an_interrupted_evaluation(tiny_policy, tmp_path):
@@ -173,6 +198,10 @@ def test_recordings_survive_an_interrupted_evaluation(tiny_policy, tmp_path):
         with pytest.raises(SystemExit, match=name):
             evaluate(dataclasses.replace(cfg, episodes=4, **change), progress=False)
     assert len((out / "episodes.jsonl").read_text().splitlines()) == 3
+    # recorded test rollouts say so, and thresholds are never calibrated on them
+    assert all(e.meta["split"] == "test" and e.meta["eval_seed"] == 7 for e in eps)
+    with pytest.raises(ValueError, match="test rollouts"):
+        calibrate(load_policy(tiny_policy, device="cpu"), eps, save=False)
 
 
 def test_auroc_hand_computed():
@@ -255,14 +284,23 @@ def test_ablation_trains_calibrates_and_tabulates_variants(tiny_policy, tmp_path
 
     data = tiny_policy.parent / "data"
     cfg = AblationConfig(data=str(data), val=str(data), out=str(tmp_path / "abl"), steps=4, batch_size=4, tasks="0",
-                         episodes=1, val_episodes=1, workers=1, max_steps=8, variants=("full", "il_only", "fixed_h5"),
+                         episodes=1, val_episodes=1, workers=1, max_steps=8,
+                         variants=("full", "il_only", "continuous_il_only", "fixed_h5"),
                          model=tiny_train_config(data, tmp_path).model)
     table = run_ablation(cfg)
     for row in ("| full |", "| il_only |", "| fixed_h5 |"):
         assert row in table
+    # Table 7 builds PI-VLA up from the OFT-like row, each row against the one above it
+    t7 = table.split("## Table 7")[1].split("##")[0].strip().splitlines()[4:]
+    assert [r.split(" | ")[0] for r in t7] == ["| continuous head, IL only, fixed H=5 (OpenVLA-OFT)",
+                                              "| + dual heads (discrete + continuous)",
+                                              "| + unified loss (L_IL + alpha L_RL + beta L_SP)", "| + AURD (full PI-VLA)"]
+    assert t7[0].split(" | ")[2] == "" and all(r.split(" | ")[2].startswith(("+", "-")) for r in t7[1:])
     runs = tmp_path / "abl" / "runs"
     il_loss = json.loads((runs / "il_only" / "config.json").read_text())["loss"]
     assert not (il_loss["use_rl"] or il_loss["use_sp"] or il_loss["use_recon"])
+    oft = json.loads((runs / "continuous_il_only" / "config.json").read_text())["loss"]
+    assert not (oft["use_discrete"] or oft["use_rl"] or oft["use_sp"]) and oft["use_continuous"]
     for name in ("full", "il_only"):
         assert (tmp_path / "abl" / "val_rollouts_eval" / name / "results.json").exists()
         assert load_policy(runs / name, device="cpu").calibration.pred_baseline == "episode"

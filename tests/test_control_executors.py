@@ -83,6 +83,8 @@ def test_aurd_replans_when_prediction_error_exceeds_tau_high():
     assert ex.plans[0] == (2, "replan")
     assert ex.trace[2]["replanned"] and ex.trace[2]["ended"] == "replan"
     assert ex.trace[1]["u_pred"] == 0.0
+    # the untrusted step was never executed; its U and V travel with the row that replanned
+    assert ex.trace[2]["ended_u"] == pytest.approx(0.6) and ex.trace[2]["ended_v"] == 1.0
 
 
 def test_aurd_prunes_in_band_with_low_value():
@@ -181,3 +183,28 @@ def test_aurd_takes_the_baseline_from_the_calibration():
     assert ex.plans[1:] == [(5, "complete"), (5, "complete")]
     with pytest.raises(ValueError, match="pred_baseline"):
         make_executor("aurd", pred_baseline="mean")
+
+
+@pytest.mark.parametrize("name", ["fixed", "adahorizon"])
+def test_chunking_baselines_trace_the_u_aurd_would_see(name):
+    """Monitoring encodes each observation the plan predicted and writes AURD's U_pred and U into the
+    trace; the actions are those of the bare executor, which encodes nothing."""
+    p = ScriptedPolicy(latent_error={2: 2.0})
+    ex = make_executor(name)
+    acts = run(ex, p, 7)
+    assert p.encoded == [1, 2, 3, 4, 6] if name == "fixed" else p.encoded[:3] == [1, 2, 3]
+    assert ex.trace[2]["u_pred"] == pytest.approx(2.0) and ex.trace[2]["u"] == pytest.approx(0.3 * 2.0)
+    assert ex.trace[0]["u_pred"] == 0.0 and ex.trace[1]["u"] == 0.0
+    bare, q = make_executor(name, monitor=False), ScriptedPolicy(latent_error={2: 2.0})
+    assert np.array_equal(np.stack(run(bare, q, 7)), np.stack(acts))
+    assert q.encoded == [] and "u" not in bare.trace[2]
+    if name == "fixed":
+        assert [r["ended"] for r in ex.trace] == [None] * 5 + ["complete", None]
+
+
+def test_ensemble_traces_the_error_of_the_previous_query():
+    p = ScriptedPolicy(latent_error={1: 1.0})
+    ex = make_executor("ensemble")
+    run(ex, p, 3)
+    assert p.encoded == [1, 2]  # t = 0 has no earlier prediction
+    assert [r["u_pred"] for r in ex.trace] == [0.0, 1.0, 0.0]

@@ -69,12 +69,16 @@ def collect(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.episodes < 1:
         raise SystemExit("--episodes must be >= 1")
+    if args.policy:  # every rollout is kept (--keep-failures is implied); cameras are the policy's own
+        expert_only = [flag for flag, given in (("--noise", args.noise), ("--miss", args.miss),
+                                                 ("--paraphrase", args.paraphrase),
+                                                 ("--image-size", args.image_size is not None)) if given]
+        if expert_only:
+            raise SystemExit(f"pivla collect: {', '.join(expert_only)} shape expert demonstrations, not --policy "
+                             "rollouts (they see what the policy was trained on)")
+        return collect_rollouts(args)
     if args.image_size is None:
         args.image_size = DEFAULT_IMAGE_SIZE[args.env]
-    if args.policy:
-        if args.noise or args.miss:
-            raise SystemExit("pivla collect: --noise and --miss shape expert demonstrations, not --policy rollouts")
-        return collect_rollouts(args)
     if args.env == "libero":
         return collect_libero(args)
     try:
@@ -228,7 +232,8 @@ def collect_rollouts(args: argparse.Namespace) -> int:
 
     cfg = EvalConfig(policy=args.policy, out=str(Path(args.out) / "rollout_eval"), env=args.env, suite=args.suite,
                      tasks=args.tasks, executor=args.executor, episodes=args.episodes, seed=args.seed,
-                     perturb=args.perturb, realism=args.realism, workers=args.workers, videos=0, record=args.out)
+                     perturb=args.perturb, realism=args.realism, workers=args.workers, videos=0, record=args.out,
+                     split="train")
     res = evaluate(cfg)
     log.info("recorded %d rollouts (%d successes) -> %s", res["episodes"], res["successes"], args.out)
     return 0

@@ -139,7 +139,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.held_out:
         episodes = held_out_episodes(args.policy, episodes)
         source += " (held-out split)"
-    calib, stats = calibrate(policy, episodes, cfg, source=source)
+    try:
+        calib, stats = calibrate(policy, episodes, cfg, source=source)
+    except ValueError as e:  # test rollouts, or no successful episode to calibrate on
+        raise SystemExit(f"pivla calibrate: {e}") from e
     print(json.dumps({"calibration": vars(calib), **stats}, indent=2))
     return 0
 
@@ -165,6 +168,9 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from pivla.evaluation.report import write_report
 
-    path = write_report(args.dir)
+    try:
+        path = write_report(args.dir)
+    except ValueError as e:  # an evaluation layout the report cannot read; said in the message
+        raise SystemExit(f"pivla report: {e}") from e
     print(f"report written to {path}")
     return 0

@@ -29,8 +29,9 @@ from pivla.policy import Calibration
 
 
 def _executor(name: str, policy):
-    """Fixed horizon at the policy's nominal horizon (AURD's own default), so both plan alike."""
-    return make_executor(name, horizon=policy.horizon) if name == "fixed" else make_executor(name)
+    """Fixed horizon at the policy's nominal horizon (AURD's own default), so both plan alike, and without
+    the trace-only monitoring (it would encode like AURD and hide AURD's cost)."""
+    return make_executor(name, horizon=policy.horizon, monitor=False) if name == "fixed" else make_executor(name)
 
 
 def run_bench(args: argparse.Namespace) -> dict:

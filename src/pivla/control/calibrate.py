@@ -95,6 +95,10 @@ def calibrate(policy: Policy, episodes: list[Episode], cfg: CalibrationConfig | 
               save: bool = True) -> tuple[Calibration, dict]:
     """Compute thresholds, store them with the policy (``calibration.json``) and return them with stats."""
     cfg = cfg or CalibrationConfig()
+    test = sum(ep.meta.get("split") == "test" for ep in episodes)
+    if test:
+        raise ValueError(f"{test} of the {len(episodes)} episodes are recorded test rollouts (pivla eval --record "
+                         "without --split validation): thresholds are calibrated on validation data only")
     sig = calibration_signals(policy, episodes, cfg)
     calib = thresholds(sig, cfg, source)
     stats = {

@@ -3,14 +3,24 @@
     executor.reset()                       # at the start of an episode
     action = executor.act(policy, obs)     # physical 7-D action for this control step
 
-and all write a per-step ``trace`` (U_act, U_pred, U, V, the event, whether the step replanned) and a
-per-plan list ``plans`` of (executed horizon, event). ``aurd`` is PI-VLA's decider; ``fixed``,
-``ensemble`` (ACT temporal ensembling) and ``adahorizon`` (EverydayVLA) are the baselines.
+and all write a per-step ``trace`` and a per-plan list ``plans`` of (executed horizon, event). ``aurd`` is
+PI-VLA's decider; ``fixed``, ``ensemble`` (ACT temporal ensembling) and ``adahorizon`` (EverydayVLA) are
+the baselines.
+
+A trace row has U_act, U_pred, U and V of the executed step, ``replanned`` (the policy was queried at this
+step) and ``ended``: on a step that replanned, how the previous plan ended ("complete", "replan", "prune",
+"pause"). AURD adds ``event`` ("pause": the step held pose; "forced": executed after ``max_pauses``) and,
+where it cut a plan, ``ended_u`` / ``ended_v``: the U and V of the untrusted step it did not execute. The
+baselines do not decide on U_pred, but with ``monitor`` (default) they encode each new observation like
+AURD does so that their traces carry the same U: what AURD would have seen in their episodes (failure
+prediction, "why AURD does not help"). Monitoring never changes an action, and its time is kept apart
+(``monitor_s``) so that control rates compare the bare executors.
 """
 
 from __future__ import annotations
 
 from collections import deque
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -50,13 +60,16 @@ class Plan:
 @dataclass
 class BaseExecutor:
     name: str = "base"
+    monitor: bool = True  # baselines: also compute U_pred and U for the trace (one encoding per new observation)
     trace: list[dict] = field(default_factory=list)
     plans: list[tuple[int, str]] = field(default_factory=list)
     t: int = 0
     last_gripper: float = -1.0
+    monitor_s: float = 0.0  # time spent on monitoring only, excluded from control-step timings
+    _pred_min: float | None = None
 
     def reset(self) -> None:
-        self.trace, self.plans, self.t, self.last_gripper = [], [], 0, -1.0
+        self.trace, self.plans, self.t, self.last_gripper, self._pred_min = [], [], 0, -1.0, None
 
     def _emit(self, action: np.ndarray, **row: Any) -> np.ndarray:
         action = np.asarray(action, np.float32)
@@ -70,6 +83,29 @@ class BaseExecutor:
         a = np.zeros(7, np.float32)
         a[GRIPPER] = self.last_gripper
         return a
+
+    def _pred_baseline(self, policy) -> str:
+        return getattr(policy.calibration, "pred_baseline", "none") or "none"
+
+    def _u_pred(self, z_obs: np.ndarray, predicted: np.ndarray, baseline: str) -> float:
+        """U_pred of one observation against its prediction, as calibrated (raw, or above the episode's floor)."""
+        raw = float(prediction_uncertainty(z_obs, predicted))
+        if baseline == "none":
+            return raw
+        u = surprise(raw, self._pred_min)
+        self._pred_min = raw if self._pred_min is None else min(self._pred_min, raw)
+        return u
+
+    def _monitored(self, policy, obs: dict, predicted: np.ndarray | None, u_act: float) -> dict[str, float]:
+        """U_pred and U of this step exactly as AURD would form them (``predicted``: the latent the current
+        plan predicted for ``obs``, None on a step that queried the policy), for a baseline's trace."""
+        if not self.monitor:
+            return {}
+        t0 = time.perf_counter()
+        u_pred = 0.0 if predicted is None else self._u_pred(policy.encode(obs), predicted, self._pred_baseline(policy))
+        eta = policy.calibration.eta if policy.calibration is not None else 0.7
+        self.monitor_s += time.perf_counter() - t0
+        return {"u_pred": u_pred, "u": eta * float(u_act) + (1 - eta) * u_pred}
 
 
 def _jsonable(v: Any) -> Any:
@@ -93,14 +129,17 @@ class FixedExecutor(BaseExecutor):
 
     def act(self, policy, obs: dict) -> np.ndarray:
         replanned = self._plan is None or self._k >= min(self.horizon, len(self._plan.actions))
+        ended = None
         if replanned:
             if self._plan is not None:
-                self.plans.append((self._k, "complete"))
+                ended = "complete"
+                self.plans.append((self._k, ended))
             self._plan, self._k = Plan.from_output(policy.infer(obs)), 0
         k, p = self._k, self._plan
         self._k += 1
-        return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k],
-                          v=p.value(k), event=None)
+        signals = self._monitored(policy, obs, None if k == 0 else p.latents[k - 1], p.u_act[k])
+        return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], **signals,
+                          v=p.value(k), ended=ended)
 
 
 @dataclass
@@ -111,14 +150,18 @@ class EnsembleExecutor(BaseExecutor):
     name: str = "ensemble"
     m: float = 0.01
     _history: deque = field(default_factory=deque)
+    _predicted: np.ndarray | None = None  # the previous query's latent for this step's observation
 
     def reset(self) -> None:
         super().reset()
-        self._history = deque()
+        self._history, self._predicted = deque(), None
 
     def act(self, policy, obs: dict) -> np.ndarray:
         out = policy.infer(obs)
         plan = Plan.from_output(out)
+        # every step queries, so the newest prediction of this observation is the previous query's first latent
+        signals = self._monitored(policy, obs, self._predicted, plan.u_act[0])
+        self._predicted = plan.latents[0]
         K = len(plan.normalized)
         self._history.append((self.t, plan.normalized))
         while self._history and self.t - self._history[0][0] >= K:
@@ -126,8 +169,8 @@ class EnsembleExecutor(BaseExecutor):
         preds = np.stack([chunk[self.t - t0] for t0, chunk in self._history])
         action = policy.to_actions(temporal_ensemble(preds, self.m).astype(np.float32))
         self.plans.append((1, "complete"))
-        return self._emit(action, plan_step=0, replanned=True, u_act=plan.u_act[0], v=plan.values[0],
-                          event=None, n_ensembled=len(preds))
+        return self._emit(action, plan_step=0, replanned=True, u_act=plan.u_act[0], **signals, v=plan.values[0],
+                          ended="complete" if self.t > 0 else None, n_ensembled=len(preds))
 
 
 @dataclass
@@ -144,10 +187,11 @@ class AdaHorizonExecutor(BaseExecutor):
     _plan: Plan | None = None
     _k: int = 0
     _h: int = 0
+    _event: str | None = None  # how the current plan ends, decided when it was made
 
     def reset(self) -> None:
         super().reset()
-        self._plan, self._k, self._h = None, 0, 0
+        self._plan, self._k, self._h, self._event = None, 0, 0, None
 
     def _thresholds(self, policy) -> tuple[float, float]:
         c = policy.calibration
@@ -158,16 +202,18 @@ class AdaHorizonExecutor(BaseExecutor):
 
     def act(self, policy, obs: dict) -> np.ndarray:
         replanned = self._plan is None or self._k >= self._h
-        event = None
+        ended = None
         if replanned:
+            ended = self._event
             self._plan = Plan.from_output(policy.infer(obs))
-            self._h, event = adahorizon(self._plan.u_act, self.min_exec, *self._thresholds(policy))
+            self._h, self._event = adahorizon(self._plan.u_act, self.min_exec, *self._thresholds(policy))
             self._k = 0
-            self.plans.append((self._h, event))
+            self.plans.append((self._h, self._event))
         k, p = self._k, self._plan
         self._k += 1
-        return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k],
-                          v=p.value(k), event=event, h_exec=self._h)
+        signals = self._monitored(policy, obs, None if k == 0 else p.latents[k - 1], p.u_act[k])
+        return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], **signals,
+                          v=p.value(k), ended=ended, h_exec=self._h)
 
 
 @dataclass
@@ -195,7 +241,6 @@ class AURDExecutor(BaseExecutor):
     _plan: Plan | None = None
     _k: int = 0
     _pauses: int = 0
-    _pred_min: float | None = None
 
     def __post_init__(self) -> None:
         if self.pred_baseline not in (None, "none", "episode"):
@@ -203,20 +248,10 @@ class AURDExecutor(BaseExecutor):
 
     def reset(self) -> None:
         super().reset()
-        self._plan, self._k, self._pauses, self._pred_min = None, 0, 0, None
+        self._plan, self._k, self._pauses = None, 0, 0
 
-    def _u_pred(self, z_obs: np.ndarray, predicted: np.ndarray, baseline: str) -> float:
-        raw = float(prediction_uncertainty(z_obs, predicted))
-        if baseline == "none":
-            return raw
-        u = surprise(raw, self._pred_min)
-        self._pred_min = raw if self._pred_min is None else min(self._pred_min, raw)
-        return u
-
-    def _baseline(self, policy) -> str:
-        if self.pred_baseline is not None:
-            return self.pred_baseline
-        return getattr(policy.calibration, "pred_baseline", "none") or "none"
+    def _pred_baseline(self, policy) -> str:
+        return self.pred_baseline if self.pred_baseline is not None else super()._pred_baseline(policy)
 
     def _thresholds(self, policy) -> tuple[float, float, float, float]:
         c = policy.calibration
@@ -236,9 +271,10 @@ class AURDExecutor(BaseExecutor):
 
     def act(self, policy, obs: dict) -> np.ndarray:
         tau_low, tau_high, v_thresh, eta = self._thresholds(policy)
-        baseline = self._baseline(policy)
+        baseline = self._pred_baseline(policy)
         H = self.horizon or policy.horizon
         ended = None
+        cut: dict[str, float] = {}  # U and V of the step a "replan" / "prune" did not trust
         z_obs = None
         observed = self._plan is not None and self._k > 0  # o is the outcome of this plan's step k - 1
         # encode only what a decision reads: not after a plan's last step (it completes, and the new plan's
@@ -251,7 +287,7 @@ class AURDExecutor(BaseExecutor):
             u = eta * self._plan.u_act[k] + (1 - eta) * u_pred
             event = step_event(u, self._plan.value(k), tau_low, tau_high, v_thresh)
             if event is not None:
-                ended = event
+                ended, cut = event, {"ended_u": u, "ended_v": self._plan.value(k)}
                 self._end_plan(self._k, event)
         if self._plan is not None and self._k >= min(H, len(self._plan.actions)):
             ended = "complete"
@@ -266,18 +302,18 @@ class AURDExecutor(BaseExecutor):
             v = p.value(k)
             event = step_event(u, v, tau_low, tau_high, v_thresh) if self.check == "before" else None
             if event is not None and k > 0:
-                ended = event
+                ended, cut = event, {"ended_u": u, "ended_v": v}
                 self._end_plan(k, event)
                 continue  # replan from the same observation
             if event is not None and self._pauses < self.max_pauses:
                 self._pauses += 1
                 self._end_plan(0, "pause")
                 return self._emit(self.hold_action(), plan_step=0, replanned=replanned, u_act=p.u_act[0],
-                                  u_pred=u_pred, u=u, v=v, event="pause", ended=ended)
+                                  u_pred=u_pred, u=u, v=v, event="pause", ended=ended, **cut)
             self._pauses = 0
             self._k += 1
             return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], u_pred=u_pred,
-                              u=u, v=v, event="forced" if event else None, ended=ended)
+                              u=u, v=v, event="forced" if event else None, ended=ended, **cut)
 
 
 EXECUTORS = {"aurd": AURDExecutor, "fixed": FixedExecutor, "ensemble": EnsembleExecutor, "adahorizon": AdaHorizonExecutor}

@@ -15,7 +15,8 @@ from pivla.envs.rollout import run_episode as _run_actor_episode
 
 
 class ExecutorActor:
-    """Adapts (policy, executor) to the rollout runner's actor interface and times every control step."""
+    """Adapts (policy, executor) to the rollout runner's actor interface and times every control step
+    (without a baseline's trace-only monitoring, ``BaseExecutor.monitor_s``: it is not part of its control)."""
 
     source = "policy"
 
@@ -28,9 +29,9 @@ class ExecutorActor:
         self.step_times = []
 
     def __call__(self, obs: dict) -> np.ndarray:
-        t = time.perf_counter()
+        t, monitoring = time.perf_counter(), self.executor.monitor_s
         action = self.executor.act(self.policy, obs)
-        self.step_times.append(time.perf_counter() - t)
+        self.step_times.append(time.perf_counter() - t - (self.executor.monitor_s - monitoring))
         return action
 
 

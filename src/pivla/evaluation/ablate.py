@@ -1,8 +1,10 @@
-"""``pivla ablate``: the structure of the paper's Tables 4-6 on the simulator.
+"""``pivla ablate``: the structure of the paper's Tables 4-7 on the simulator.
 
 Table 4 (action heads): full, discrete-only, continuous-only. Table 5 (loss terms): full, w/o L_SP,
 w/o L_RL, IL only. Table 6 (execution): the full model with AURD, AURD in the paper's literal check order,
-fixed horizon, ACT temporal ensembling and AdaHorizon. Every variant goes through the demo's recipe
+fixed horizon, ACT temporal ensembling and AdaHorizon. Table 7 (components added one at a time): a
+continuous head trained by imitation alone and run at a fixed horizon (the OpenVLA-OFT row), + the discrete
+head (IL only), + the unified loss (the full model), + AURD; each row against the one above it. Every variant goes through the demo's recipe
 (:mod:`pivla.evaluation.protocol`) with the same data, seed and steps: trained, run on the same validation
 seeds, calibrated on its own successful validation rollouts, and evaluated on the same test seeds.
 """
@@ -30,7 +32,15 @@ TRAIN_VARIANTS: dict[str, tuple[str, dict]] = {
     "no_sp": ("loss", {"use_sp": False}),
     "no_rl": ("loss", {"use_rl": False}),
     "il_only": ("loss", {"use_sp": False, "use_rl": False, "use_recon": False}),
+    "continuous_il_only": ("components", {"use_discrete": False, "use_sp": False, "use_rl": False, "use_recon": False}),
 }
+# Table 7: (row, trained variant, executor whose result counts): each adds one component to the row above
+INCREMENTAL: tuple[tuple[str, str, str], ...] = (
+    ("continuous head, IL only, fixed H=5 (OpenVLA-OFT)", "continuous_il_only", "fixed"),
+    ("+ dual heads (discrete + continuous)", "il_only", "fixed"),
+    ("+ unified loss (L_IL + alpha L_RL + beta L_SP)", "full", "fixed"),
+    ("+ AURD (full PI-VLA)", "full", "aurd"),
+)
 # executor variants of the full model: name -> (executor, options)
 EXEC_VARIANTS: dict[str, tuple[str, dict]] = {
     "aurd": ("aurd", {}),
@@ -150,6 +160,12 @@ def run_ablation(cfg: AblationConfig) -> str:
         rows = [_model_row(k, *models[k], ref) for k in keys if k in models]
         if rows:
             lines += [f"## {title}", "", *model_header, *rows, ""]
+    steps = [(row, models[v][0 if ex == "aurd" else 1]) for row, v, ex in INCREMENTAL if v in models]
+    if len(steps) == len(INCREMENTAL):
+        lines += ["## Table 7: components added one at a time", "",
+                  "| configuration | success | - row above | episodes | mean horizon |", "|---|---|---|---|---|",
+                  *[f"| {row} | {_rate(r)} | {_diff(r, steps[i - 1][1] if i else None)} | {r['episodes']} | "
+                    f"{r['mean_executed_horizon']:.2f} |" for i, (row, r) in enumerate(steps)], ""]
     if execs:
         fixed_ref = execs.get("fixed_h5")
         lines += ["## Table 6: execution strategy (full model)", "",

@@ -7,6 +7,7 @@ its parent directory names the condition (e.g. ``eval/unseen_env/aurd``).
 from __future__ import annotations
 
 import json
+import logging
 import math
 import re
 from pathlib import Path
@@ -16,6 +17,8 @@ import numpy as np
 from pivla.control.math import wilson_interval
 from pivla.evaluation.runner import load_rows
 from pivla.training.checkpoint import atomic_write_bytes
+
+log = logging.getLogger(__name__)
 
 
 def newcombe_difference(s1: int, n1: int, s2: int, n2: int) -> tuple[float, float, float]:
@@ -54,11 +57,17 @@ def mcnemar_exact_p(a_only: int, b_only: int) -> float:
 def find_evaluations(root: Path) -> dict[tuple[str, str], Path]:
     """(condition, executor) -> evaluation directory, test evaluations only (validation rollouts that
     thresholds were calibrated on are not results)."""
-    found = {}
+    found: dict[tuple[str, str], Path] = {}
     for res in sorted(root.rglob("results.json")):
         d, meta = res.parent, json.loads(res.read_text())
-        if meta.get("split", "test") == "test":
-            found[(d.parent.name, meta["executor"])] = d
+        if meta.get("split", "test") != "test":
+            continue
+        key = (d.parent.name, meta["executor"])
+        if key in found:
+            raise ValueError(f"{found[key]} and {d} are both {key[1]} evaluations of condition {key[0]!r}: pivla "
+                             "report reads DIR/<condition>/<evaluation>/results.json, one evaluation per executor "
+                             "and condition")
+        found[key] = d
     return found
 
 
@@ -86,7 +95,8 @@ def _level(condition: str) -> int | None:
 
 
 def plot_timeline(row: dict, calib: dict | None, path: Path) -> None:
-    """Paper Fig. 15: U, U_act, U_pred over one episode, thresholds, and where AURD replanned."""
+    """Paper Fig. 15: U, U_act, U_pred over one episode, thresholds, and where AURD replanned, pruned or
+    paused; a cut plan's untrusted step (never executed, so not on the curves) is marked by its U."""
     plt = _plt()
     tr = row["trace"]
     t = np.array([r["t"] for r in tr])
@@ -97,10 +107,12 @@ def plot_timeline(row: dict, calib: dict | None, path: Path) -> None:
     if calib:
         ax.axhline(calib["tau_high"], color="r", ls="--", lw=1, label="tau_high")
         ax.axhline(calib["tau_low"], color="orange", ls="--", lw=1, label="tau_low")
+    colours = {"replan": "r", "prune": "orange", "pause": "purple"}
     for r in tr:
-        ev = r.get("ended") or r.get("event")
-        if ev in ("replan", "prune", "pause"):
-            ax.axvline(r["t"], color={"replan": "r", "prune": "orange", "pause": "purple"}[ev], alpha=0.25)
+        for ev in {r.get("ended"), r.get("event")} & set(colours):
+            ax.axvline(r["t"], color=colours[ev], alpha=0.25)
+        if r.get("ended") in ("replan", "prune") and "ended_u" in r:
+            ax.plot(r["t"] - 0.5, r["ended_u"], "x", color=colours[r["ended"]], ms=5)
     ax.set_xlabel("control step")
     ax.set_ylabel("uncertainty")
     ax.set_title(f"{row['task']} episode {row['episode']} ({'success' if row['success'] else 'failure'})")
@@ -223,7 +235,8 @@ def write_report(root: str | Path) -> Path:
             calib = _calibration(results, root)
             plot_timeline(pick, calib, figs / "uncertainty_timeline.png")
             lines += ["", "## Uncertainty timeline of one AURD episode (paper Fig. 15)", "",
-                      "Vertical lines: replans (red), prunes (orange), pauses (purple).", "",
+                      "Vertical lines: replans (red), prunes (orange), pauses (purple); crosses: the U of the step a "
+                      "replan or prune did not execute.", "",
                       "![](figures/uncertainty_timeline.png)"]
     levels: dict[str, dict[int, dict]] = {}
     for (c, e), r in results.items():
@@ -245,8 +258,15 @@ def write_report(root: str | Path) -> Path:
 
 
 def _calibration(results: dict, root: Path) -> dict | None:
+    """The thresholds of the AURD evaluations: as results.json records them; older results only name the
+    policy, whose calibration.json is read if that path still resolves from here."""
+    for r in results.values():
+        if r.get("thresholds"):
+            return r["thresholds"]
     for r in results.values():
         calib = Path(r["policy"]) / "calibration.json"
         if calib.exists():
             return json.loads(calib.read_text())
+    log.warning("%s: no thresholds in results.json and no calibration.json at the recorded policy paths; "
+                "the uncertainty timeline is drawn without them", root)
     return None

@@ -48,7 +48,9 @@ class EvalConfig:
     # LIBERO: episode e starts from official init state first_init_state + e (mod 50), whatever the worker,
     # so the test states are known and can be kept apart from the states demonstrations were collected on
     first_init_state: int = 0
-    split: str = "test"  # "validation" for the rollouts thresholds are calibrated on; reports show test only
+    # "validation": rollouts thresholds are calibrated on; "train": rollouts to train on (pivla collect --policy);
+    # reports show "test" only, and pivla calibrate refuses recorded "test" episodes
+    split: str = "test"
     gripper_head: str | None = None  # None: the policy's default (pivla.policy.Policy)
 
 
@@ -170,7 +172,9 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict
     plans = [(h, e) for r in rows for h, e in r["plan_events"]]
     horizons = [h for h, e in plans if e != "pause"]
     steps = sum(r["steps"] for r in rows)
-    control_s = sum(r["control_ms_mean"] * r["steps"] for r in rows) / 1e3
+    # median over episodes of each one's mean step time: a worker's first episode also pays one-time warm-up
+    # (allocations, the first policy query), which a mean over all steps would spread over the others
+    control_ms = float(np.median([r["control_ms_mean"] for r in rows])) if rows else 0.0
     return {
         "success_rate": succ / n if n else 0.0,
         "ci95": list(wilson_interval(succ, n)),
@@ -186,7 +190,7 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict
         "prunes": sum(e == "prune" for _, e in plans),
         "pauses": sum(e == "pause" for _, e in plans),
         "plans": len(plans),
-        "control_hz": steps / control_s if control_s > 0 else 0.0,  # policy + decision time per control step
+        "control_hz": 1e3 / control_ms if control_ms > 0 else 0.0,  # policy + decision time per control step
         "steps": steps,
         "mean_steps": steps / n if n else 0.0,
         "sim_wall_s": float(sum(r["wall_s"] for r in rows)),
@@ -241,6 +245,34 @@ def _check_resumable(path: Path, cfg: EvalConfig) -> None:
                          "use another --out or delete it")
 
 
+def _check_settings(cfg: EvalConfig) -> None:
+    """Reject executor options and perturbation specs that the episode jobs would trip over, before anything
+    is written."""
+    from pivla.control import make_executor
+
+    try:
+        make_executor(cfg.executor, **cfg.executor_options)
+    except (TypeError, ValueError) as e:
+        raise SystemExit(f"executor {cfg.executor!r} with options {cfg.executor_options}: {e}") from e
+    if cfg.env == "tabletop" and cfg.perturb:
+        from pivla.envs.tabletop.perturb import parse_perturb
+
+        try:
+            parse_perturb(cfg.perturb)
+        except ValueError as e:
+            raise SystemExit(f"--perturb {cfg.perturb!r}: {e}") from e
+
+
+def evaluation_thresholds(calibration: Any, options: dict) -> dict | None:
+    """AURD's tau_low, tau_high, V_thresh and eta for this evaluation (``--option`` overrides the calibration),
+    kept in results.json so that a report draws the thresholds the traces were judged by; None when the
+    policy is uncalibrated and no override gives all of them."""
+    keys = ("tau_low", "tau_high", "v_thresh", "eta")
+    base = {k: getattr(calibration, k) for k in keys} if calibration is not None else {"eta": 0.7}
+    out = base | {k: float(options[k]) for k in keys if k in options}
+    return out if all(k in out for k in keys) else None
+
+
 def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     """Run (or resume) an evaluation; writes results.json, episodes.jsonl, traces/ and videos/ in ``cfg.out``."""
     from tqdm import tqdm
@@ -248,13 +280,15 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     from pivla import load_policy
     from pivla.envs import select_tasks
 
+    _check_settings(cfg)
     out = Path(cfg.out)
-    (out / "traces").mkdir(parents=True, exist_ok=True)
     tasks = select_tasks(cfg.env, cfg.suite, cfg.tasks)
+    (out / "traces").mkdir(parents=True, exist_ok=True)
     policy = load_policy(cfg.policy, device="cpu", gripper_head=cfg.gripper_head)
     if cfg.executor == "aurd" and policy.calibration is None and not {"tau_low", "tau_high", "v_thresh"} <= set(cfg.executor_options):
         raise SystemExit(f"{cfg.policy}: not calibrated; run `pivla calibrate --policy {cfg.policy} --data VAL` first")
-    tau_high = cfg.executor_options.get("tau_high", policy.calibration.tau_high if policy.calibration else None)
+    thresholds = evaluation_thresholds(policy.calibration, cfg.executor_options)
+    tau_high = thresholds["tau_high"] if thresholds else None
     gripper_head = policy.gripper_head
     del policy
     log_path = out / "episodes.jsonl"
@@ -278,6 +312,8 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
             if ep is not None and video:
                 _write_video(out / "videos", row, ep)
             if ep is not None and cfg.record:  # before the row: a logged episode always has its recording
+                # which evaluation it came from: pivla calibrate refuses test episodes
+                ep.meta.update(split=cfg.split, eval_seed=cfg.seed, perturb=cfg.perturb)
                 _record_part(Path(cfg.record), row, ep)
             atomic_write_json(out / "traces" / f"{row['task']}_{row['episode']:03d}.json", row)
             logf.write(json.dumps(row) + "\n")
@@ -301,7 +337,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
                     consume(row)
     bar.close()
     rows = sorted(done.values(), key=_key)
-    results = aggregate(rows, cfg, tau_high) | {"gripper_head": gripper_head}
+    results = aggregate(rows, cfg, tau_high) | {"gripper_head": gripper_head, "thresholds": thresholds}
     atomic_write_json(out / "results.json", results)
     if cfg.record:  # after results.json: a missing recording must not cost the evaluation its results
         _merge_rollouts(Path(cfg.record), rows)
