@@ -19,8 +19,8 @@ prediction, "why AURD does not help"). Monitoring never changes an action, and i
 
 from __future__ import annotations
 
-from collections import deque
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -87,6 +87,10 @@ class BaseExecutor:
     def _pred_baseline(self, policy) -> str:
         return getattr(policy.calibration, "pred_baseline", "none") or "none"
 
+    def _eta(self, policy) -> float:
+        """Weight of U_act in U: the calibration's, else Eq. 13's default 0.7."""
+        return policy.calibration.eta if policy.calibration is not None else 0.7
+
     def _u_pred(self, z_obs: np.ndarray, predicted: np.ndarray, baseline: str) -> float:
         """U_pred of one observation against its prediction, as calibrated (raw, or above the episode's floor)."""
         raw = float(prediction_uncertainty(z_obs, predicted))
@@ -103,7 +107,7 @@ class BaseExecutor:
             return {}
         t0 = time.perf_counter()
         u_pred = 0.0 if predicted is None else self._u_pred(policy.encode(obs), predicted, self._pred_baseline(policy))
-        eta = policy.calibration.eta if policy.calibration is not None else 0.7
+        eta = self._eta(policy)
         self.monitor_s += time.perf_counter() - t0
         return {"u_pred": u_pred, "u": eta * float(u_act) + (1 - eta) * u_pred}
 
@@ -262,7 +266,7 @@ class AURDExecutor(BaseExecutor):
         tl = self.tau_low if self.tau_low is not None else c.tau_low
         th = self.tau_high if self.tau_high is not None else c.tau_high
         vt = self.v_thresh if self.v_thresh is not None else c.v_thresh
-        eta = self.eta if self.eta is not None else (c.eta if c is not None else 0.7)
+        eta = self.eta if self.eta is not None else self._eta(policy)
         return tl, th, vt, eta
 
     def _end_plan(self, h: int, event: str) -> None:
