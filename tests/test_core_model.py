@@ -128,6 +128,34 @@ def test_thumbnail_target_is_the_pooled_image_and_stays_put():
         CMSModel(cfg, vocab_size=12)
 
 
+def test_downsampled_target_encodes_the_area_averaged_image():
+    """``downsample=2``: the EMA encoder's latent of the agent view averaged over 2 x 2 pixels, at any batch
+    shape; a factor that does not divide the image size is refused."""
+    cfg = ModelConfig(image_size=32, backbone=CFG.backbone)
+    cfg.target_encoder.downsample = 2
+    m = CMSModel(cfg, vocab_size=12)
+    images = fake_batch(cfg)["images"]
+    small = torch.nn.functional.avg_pool2d(images[:, :1].flatten(0, 1), 2).unflatten(0, (3, 1))
+    z = m.target.encoder.pooled(small)
+    torch.testing.assert_close(m.target(images), torch.nn.functional.layer_norm(z, z.shape[-1:]) / np.sqrt(z.shape[-1]))
+    sp = fake_batch(cfg)["sp_images"]
+    torch.testing.assert_close(m.target(sp)[:, 1], m.target(sp[:, 1]))
+    cfg.target_encoder.downsample = 3
+    with pytest.raises(ValueError, match="downsample 3 must divide image_size 32"):
+        CMSModel(cfg, vocab_size=12)
+
+
+def test_demo_policy_encodes_its_agent_view_downsampled():
+    """The demo (full and quick) trains with the target encoder's downsampling (its cheap U_pred), which
+    must divide the demo's resolution."""
+    from pivla.cli.demo import QUICK, DemoConfig, model_config
+
+    for demo in (DemoConfig(), QUICK):
+        cfg = model_config(demo)
+        assert cfg.image_size == demo.image_size and cfg.target_encoder.downsample == demo.target_downsample > 1
+        assert CMSModel(cfg, vocab_size=12).target.downsample == demo.target_downsample
+
+
 def test_spatial_softmax_finds_a_peak_where_it_is():
     """A single strong feature at row 1, column 6 of an 8 x 8 map gives the keypoint at that pixel's
     coordinates in [-1, 1] (x from the column, y from the row)."""

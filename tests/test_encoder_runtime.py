@@ -17,10 +17,10 @@ from pivla.policy import Policy
 pytestmark = pytest.mark.skipif(not er.onnx_available(), reason="onnxruntime / onnxscript not installed")
 
 
-def make_policy(run_dir, runtime="onnx", seed=0, target="ema"):
+def make_policy(run_dir, runtime="onnx", seed=0, target="ema", downsample=1):
     torch.manual_seed(seed)
     cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32)),
-                      target_encoder=TargetEncoderConfig(name=target, grid=4))
+                      target_encoder=TargetEncoderConfig(name=target, grid=4, downsample=downsample))
     text = WordTokenizer.build(["pick up the block"], cfg.max_text_len)
     stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7), StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim))
     return Policy(CMSModel(cfg, len(text.vocab)), stats, text, run_dir=run_dir, encoder_runtime=runtime)
@@ -66,6 +66,12 @@ def test_cache_is_reused_rebuilt_when_damaged_and_replaced_for_new_weights(tmp_p
     make_policy(tmp_path, seed=1)  # other weights: their own graph, the old one removed
     (new,) = tmp_path.glob("target_encoder-*.onnx")
     assert new != path
+    # same weights, downsampled input: another graph, which agrees with PyTorch
+    p = make_policy(tmp_path, seed=1, downsample=2)
+    (down,) = tmp_path.glob("target_encoder-*.onnx")
+    assert down != new and p.encoder_runtime == "onnx"
+    np.testing.assert_allclose(p.encode(obs(0)), make_policy(None, "torch", seed=1, downsample=2).encode(obs(0)),
+                               atol=1e-5, rtol=1e-4)
 
 
 def test_a_graph_that_disagrees_with_torch_is_not_used_nor_cached(tmp_path, monkeypatch, caplog):

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pivla.control.math import action_uncertainty
+from pivla.control.math import DEFAULT_ETA, action_uncertainty
 from pivla.data.dataset import proprio_vector, resize_images
 from pivla.data.normalize import NormStats
 from pivla.data.text import WordTokenizer, load_text_tokenizer
@@ -34,7 +34,7 @@ class Calibration:
     tau_low: float
     tau_high: float
     v_thresh: float
-    eta: float = 0.7
+    eta: float = DEFAULT_ETA
     source: str = ""
     act_low: float | None = None  # P(tau_low_pct) of U_act: AdaHorizon extends below it
     act_high: float | None = None  # P(tau_high_pct) of U_act: AdaHorizon replans above it

@@ -16,8 +16,12 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pivla.evaluation import protocol
+
+if TYPE_CHECKING:
+    from pivla.model.config import ModelConfig
 
 log = logging.getLogger("pivla.demo")
 
@@ -39,6 +43,10 @@ class DemoConfig:
     # camera and policy resolution: 96 -> 80 px trains a step 1.6x faster at the same success on 900 validation
     # episodes (72 px: 1.8x, but 1.8 points lower there; session 10)
     image_size: int = 80
+    # AURD encodes every new observation with the target encoder; area-averaging the agent view 4x per side
+    # first (80 -> 20 px) makes that ~3x cheaper at no loss: 1290 against 1270 of 1440 validation episodes
+    # (p 0.16; docs/results.md, session 16)
+    target_downsample: int = 4
     batch_size: int = protocol.BATCH_SIZE
     noise: float = 0.3  # DART: noise on executed expert actions, clean labels (recovery data)
     # share of training demos whose first grasp misses and is recovered (expert.py): without it the policy
@@ -79,6 +87,13 @@ def register(command: str, parser: argparse.ArgumentParser) -> None:
     parser.set_defaults(func=run_demo)
 
 
+def model_config(cfg: DemoConfig) -> ModelConfig:
+    """The default policy's architecture: the demo's resolution and target-encoder downsampling."""
+    from pivla.model.config import ModelConfig, TargetEncoderConfig
+
+    return ModelConfig(image_size=cfg.image_size, target_encoder=TargetEncoderConfig(downsample=cfg.target_downsample))
+
+
 def _stage(name: str, done: bool) -> bool:
     if done:
         log.info("[%s] already done, skipping", name)
@@ -92,7 +107,6 @@ def run_demo(args: argparse.Namespace) -> int:
     from pivla.evaluation.protocol import calibrate_on_rollouts, train_config, validation_rollouts
     from pivla.evaluation.report import write_report
     from pivla.evaluation.runner import EvalConfig, evaluate
-    from pivla.model.config import ModelConfig
     from pivla.training.trainer import train
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
@@ -129,7 +143,7 @@ def run_demo(args: argparse.Namespace) -> int:
     trained = status.exists() and json.loads(status.read_text()).get("done", False)
     if _stage("train", trained):
         tc = train_config(str(train_dir), str(run_dir), cfg.steps, cfg.batch_size, args.seed,
-                          model=ModelConfig(image_size=cfg.image_size))
+                          model=model_config(cfg))
         timed("train", lambda: train(tc, resume=(run_dir / "checkpoints").exists()))
     rollouts_dir = out / "data" / "val_rollouts"
     if _stage("validation rollouts", (rollouts_dir / "rock_right_rollouts.hdf5").exists()):

@@ -148,9 +148,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from pivla.cli.demo import DemoConfig
+    from pivla.cli.demo import DemoConfig, model_config
     from pivla.evaluation.ablate import AblationConfig, run_ablation
-    from pivla.model.config import ModelConfig
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = AblationConfig(data=args.data, val=args.val, out=args.out, steps=args.steps, batch_size=args.batch_size,
@@ -159,7 +158,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
                          perturb=args.perturb,
                          realism=args.realism, workers=args.workers,
                          variants=tuple(args.variants.split(",")) if args.variants else None,
-                         model=ModelConfig(image_size=args.image_size or DemoConfig.image_size))
+                         model=model_config(DemoConfig(image_size=args.image_size or DemoConfig.image_size)))
     table = run_ablation(cfg)
     print(table)
     return 0

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pivla.control.math import surprise
+from pivla.control.math import DEFAULT_ETA, surprise
 from pivla.data.format import Episode
 from pivla.policy import Calibration, Policy
 from pivla.training.checkpoint import CALIBRATION_FILE, atomic_write_json
@@ -29,7 +29,7 @@ class CalibrationConfig:
     tau_low_pct: float = 50.0
     tau_high_pct: float = 99.0
     v_pct: float = 10.0
-    eta: float = 0.7
+    eta: float = DEFAULT_ETA
     stride: int = 2  # every stride-th time step of each episode
     batch: int = 64
     pred_baseline: str = "none"  # as AURD's option: "episode" measures U_pred above the episode's floor so far

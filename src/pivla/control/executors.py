@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from pivla.control.math import adahorizon, prediction_uncertainty, step_event, surprise, temporal_ensemble
+from pivla.control.math import DEFAULT_ETA, adahorizon, prediction_uncertainty, step_event, surprise, temporal_ensemble
 
 GRIPPER = 6
 EVERYDAYVLA_EXTEND_BELOW, EVERYDAYVLA_REPLAN_ABOVE = 0.03, 0.06  # AdaHorizon's constants in its own code
@@ -88,8 +88,8 @@ class BaseExecutor:
         return getattr(policy.calibration, "pred_baseline", "none") or "none"
 
     def _eta(self, policy) -> float:
-        """Weight of U_act in U: the calibration's, else Eq. 13's default 0.7."""
-        return policy.calibration.eta if policy.calibration is not None else 0.7
+        """Weight of U_act in U: the calibration's, else Eq. 13's default."""
+        return policy.calibration.eta if policy.calibration is not None else DEFAULT_ETA
 
     def _u_pred(self, z_obs: np.ndarray, predicted: np.ndarray, baseline: str) -> float:
         """U_pred of one observation against its prediction, as calibrated (raw, or above the episode's floor)."""

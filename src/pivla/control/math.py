@@ -12,6 +12,9 @@ from pivla.model.tokenizer import dequantize as _dequantize
 
 EVENTS = ("complete", "replan", "prune", "pause")
 
+# Eq. 13's weight of U_act in U when nothing was calibrated (METHOD.md "AURD")
+DEFAULT_ETA = 0.7
+
 
 def dequantize(probs: np.ndarray, bin_centers: np.ndarray) -> np.ndarray:
     """Eq. 12: a_bar[k, d] = sum_b p[k, d, b] * c_b (expectation over the bin centres)."""
@@ -47,7 +50,7 @@ def surprise(u_pred: float, episode_min: float | None) -> float:
 
 
 def composite_uncertainty(continuous: np.ndarray, dequantized: np.ndarray, observed_latent: np.ndarray | None,
-                          predicted_latent: np.ndarray | None, eta: float = 0.7) -> np.ndarray | float:
+                          predicted_latent: np.ndarray | None, eta: float = DEFAULT_ETA) -> np.ndarray | float:
     """Eqs. 13-14: U = eta * U_act + (1 - eta) * U_pred.
 
     Works on one step ((D,) actions, (d_z,) latents) or a whole chunk ((K, D), (K, d_z)); latents may be

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from pivla.control.math import wilson_interval
+from pivla.control.math import DEFAULT_ETA, wilson_interval
 from pivla.envs.rollout import episode_seed
 from pivla.training.checkpoint import atomic_write_json, read_json
 
@@ -268,7 +268,7 @@ def evaluation_thresholds(calibration: Any, options: dict) -> dict | None:
     kept in results.json so that a report draws the thresholds the traces were judged by; None when the
     policy is uncalibrated and no override gives all of them."""
     keys = ("tau_low", "tau_high", "v_thresh", "eta")
-    base = {k: getattr(calibration, k) for k in keys} if calibration is not None else {"eta": 0.7}
+    base = {k: getattr(calibration, k) for k in keys} if calibration is not None else {"eta": DEFAULT_ETA}
     out = base | {k: float(options[k]) for k in keys if k in options}
     return out if all(k in out for k in keys) else None
 

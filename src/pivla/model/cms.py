@@ -114,18 +114,27 @@ class TargetEncoder(nn.Module):
     divided by sqrt(d_z), so that an L2 distance between two latents is an RMS error per feature.
     """
 
-    def __init__(self, encoder: nn.Module, kind: str, ema_decay: float, cameras: int = 1):
+    def __init__(self, encoder: nn.Module, kind: str, ema_decay: float, cameras: int = 1, downsample: int = 1):
         super().__init__()
+        if downsample < 1:
+            raise ValueError(f"target encoder downsample must be >= 1, got {downsample}")
         self.encoder = encoder
         self.kind = kind
         self.ema_decay = ema_decay
         self.cameras = cameras
+        self.downsample = downsample
         self.encoder.requires_grad_(False)
+
+    def extra_repr(self) -> str:
+        return f"kind={self.kind!r}, cameras={self.cameras}, downsample={self.downsample}"
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """(..., n_cam, 3, H, W) images in [0, 1] -> (..., d_z) latents of the first ``cameras`` cameras."""
+        """(..., n_cam, 3, H, W) images in [0, 1] -> (..., d_z) latents of the first ``cameras`` cameras,
+        area-averaged ``downsample`` times per side first."""
         images = images[..., : self.cameras, :, :, :]
+        if self.downsample > 1:
+            images = F.avg_pool2d(images.flatten(0, -4), self.downsample).unflatten(0, images.shape[:-3])
         lead = images.shape[:-4]
         z = self.encoder.pooled(images.flatten(0, len(lead) - 1) if len(lead) > 1 else images)
         z = F.layer_norm(z.float(), z.shape[-1:]) / math.sqrt(z.shape[-1])
@@ -161,7 +170,9 @@ def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder
     if tc.name in ("ema", "frozen"):
         if not hasattr(backbone, "vision"):
             raise ValueError(f"target encoder {tc.name!r} needs a backbone with a 'vision' encoder; use dinov2")
-        return TargetEncoder(copy.deepcopy(backbone.vision), tc.name, tc.ema_decay, tc.cameras)
+        if cfg.image_size % tc.downsample:
+            raise ValueError(f"target encoder downsample {tc.downsample} must divide image_size {cfg.image_size}")
+        return TargetEncoder(copy.deepcopy(backbone.vision), tc.name, tc.ema_decay, tc.cameras, tc.downsample)
     if tc.name == "dinov2":
         from pivla.model.dinov2 import Dinov2Encoder
 

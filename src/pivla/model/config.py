@@ -50,6 +50,9 @@ class TargetEncoderConfig:
     # how many of the policy's cameras (leading ones; the agent view first) the latent describes. One by
     # default: AURD encodes every new observation, and the scene camera carries the task state.
     cameras: int = 1
+    # ``ema``/``frozen`` only: the image is area-averaged by this factor per side before encoding. The
+    # encoding then costs about 1/factor**2 of the policy's vision pass, which is AURD's per-step overhead.
+    downsample: int = 1
 
 
 @dataclass

@@ -109,7 +109,8 @@ def onnx_target_encoder(module: torch.nn.Module, image_shape: tuple[int, int, in
 
     path = None
     if cache_dir is not None:
-        key = hashlib.sha256(f"{weights_digest(module)} {tuple(image_shape)}".encode()).hexdigest()[:16]
+        # the module's repr names its architecture and settings (say, a target encoder's downsampling)
+        key = hashlib.sha256(f"{weights_digest(module)} {tuple(image_shape)} {module!r}".encode()).hexdigest()[:16]
         path = Path(cache_dir) / f"{ONNX_PREFIX}{key}.onnx"
     if path is not None and path.is_file():
         try:
