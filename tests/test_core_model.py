@@ -154,6 +154,8 @@ def test_demo_policy_encodes_its_agent_view_downsampled():
         cfg = model_config(demo)
         assert cfg.image_size == demo.image_size and cfg.target_encoder.downsample == demo.target_downsample > 1
         assert CMSModel(cfg, vocab_size=12).target.downsample == demo.target_downsample
+    with pytest.raises(ValueError, match="image size 90 px is not a multiple"):
+        model_config(DemoConfig(image_size=90))
 
 
 def test_spatial_softmax_finds_a_peak_where_it_is():

@@ -91,6 +91,9 @@ def model_config(cfg: DemoConfig) -> ModelConfig:
     """The default policy's architecture: the demo's resolution and target-encoder downsampling."""
     from pivla.model.config import ModelConfig, TargetEncoderConfig
 
+    if cfg.image_size % cfg.target_downsample:
+        raise ValueError(f"image size {cfg.image_size} px is not a multiple of the target encoder's downsampling "
+                         f"({cfg.target_downsample}x)")
     return ModelConfig(image_size=cfg.image_size, target_encoder=TargetEncoderConfig(downsample=cfg.target_downsample))
 
 
@@ -119,6 +122,10 @@ def run_demo(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, train_episodes=args.train_episodes)
     if args.image_size:
         cfg = dataclasses.replace(cfg, image_size=args.image_size)
+    try:
+        model = model_config(cfg)
+    except ValueError as e:
+        raise SystemExit(f"pivla demo: {e}") from e
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
@@ -143,7 +150,7 @@ def run_demo(args: argparse.Namespace) -> int:
     trained = status.exists() and json.loads(status.read_text()).get("done", False)
     if _stage("train", trained):
         tc = train_config(str(train_dir), str(run_dir), cfg.steps, cfg.batch_size, args.seed,
-                          model=model_config(cfg))
+                          model=model)
         timed("train", lambda: train(tc, resume=(run_dir / "checkpoints").exists()))
     rollouts_dir = out / "data" / "val_rollouts"
     if _stage("validation rollouts", (rollouts_dir / "rock_right_rollouts.hdf5").exists()):

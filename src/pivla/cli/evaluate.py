@@ -152,13 +152,17 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     from pivla.evaluation.ablate import AblationConfig, run_ablation
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        model = model_config(DemoConfig(image_size=args.image_size or DemoConfig.image_size))
+    except ValueError as e:
+        raise SystemExit(f"pivla ablate: {e}") from e
     cfg = AblationConfig(data=args.data, val=args.val, out=args.out, steps=args.steps, batch_size=args.batch_size,
                          env=args.env, suite=args.suite, tasks=args.tasks, episodes=args.episodes, seed=args.seed,
                          train_seed=args.train_seed, val_seed=args.val_seed, val_episodes=args.val_episodes,
                          perturb=args.perturb,
                          realism=args.realism, workers=args.workers,
                          variants=tuple(args.variants.split(",")) if args.variants else None,
-                         model=model_config(DemoConfig(image_size=args.image_size or DemoConfig.image_size)))
+                         model=model)
     table = run_ablation(cfg)
     print(table)
     return 0
