@@ -97,7 +97,7 @@ def test_aurd_prunes_in_band_with_low_value():
 
 def test_aurd_pauses_then_acts_after_max_pauses():
     p = ScriptedPolicy(u_act=[1.0] + [0] * 7)  # first action never trusted: 0.7 > tau_high
-    ex = make_executor("aurd", max_pauses=2)
+    ex = make_executor("aurd", max_pauses=2, commit_after_cut=False)
     acts = run(ex, p, 4)
     assert np.allclose(acts[0][:6], 0) and acts[0][6] == -1.0  # hold pose, gripper as before (open)
     assert np.allclose(acts[1][:6], 0)
@@ -107,10 +107,43 @@ def test_aurd_pauses_then_acts_after_max_pauses():
 
 def test_aurd_after_order_never_pauses():
     p = ScriptedPolicy(u_act=[1.0] * 8)
-    ex = make_executor("aurd", check="after")
+    ex = make_executor("aurd", check="after", commit_after_cut=False)
     acts = run(ex, p, 3)
     assert [a[0] for a in acts] == [1, 2, 3]
     assert ex.plans == [(1, "replan"), (1, "replan")]
+
+
+@pytest.mark.parametrize("monitor", [True, False])
+def test_aurd_commits_to_the_plan_after_a_cut(monitor):
+    # the observations at t=2 and t=3 both deviate (U = 0.6 > tau_high): the first cut replans at t=2; the
+    # plan made there is committed, so t=3 does not cut it again, and the plan after it is checked again
+    p = ScriptedPolicy(latent_error={2: 2.0, 3: 2.0, 8: 2.0})
+    ex = make_executor("aurd", monitor=monitor)
+    acts = run(ex, p, 9)
+    assert [a[0] for a in acts] == [1, 1, 2, 2, 2, 2, 2, 3, 4]
+    assert ex.plans == [(2, "replan"), (5, "complete"), (1, "replan")]
+    assert [r["committed"] for r in ex.trace] == [False] * 2 + [True] * 5 + [False, True]
+    # a committed step's observation is encoded only for the trace (monitoring, outside the control time)
+    assert p.encoded == ([1, 2, 3, 4, 5, 6, 8] if monitor else [1, 2, 8])
+    assert ex.trace[3]["u"] == (pytest.approx(0.6) if monitor else 0.0)
+    assert (ex.monitor_s > 0) == monitor
+    # the old rule cuts the second plan at t=3 too
+    old = make_executor("aurd", commit_after_cut=False)
+    assert [a[0] for a in run(old, ScriptedPolicy(latent_error={2: 2.0, 3: 2.0}), 4)] == [1, 1, 2, 3]
+
+
+def test_aurd_pauses_once_then_commits():
+    p = ScriptedPolicy(u_act=[1.0] + [0] * 7)  # the first action of every plan is untrusted
+    ex = make_executor("aurd")
+    acts = run(ex, p, 8)
+    assert [a[0] for a in acts] == [0, 2, 2, 2, 2, 2, 0, 4]
+    assert ex.plans == [(0, "pause"), (5, "complete"), (0, "pause")]
+    assert [r.get("event") for r in ex.trace] == ["pause"] + [None] * 5 + ["pause", None]
+    # the paper's order commits too: a replan after one action, then a whole unchecked plan
+    ex = make_executor("aurd", check="after")
+    acts = run(ex, ScriptedPolicy(u_act=[1.0] * 8), 7)
+    assert [a[0] for a in acts] == [1, 2, 2, 2, 2, 2, 3]
+    assert ex.plans == [(1, "replan"), (5, "complete")]
 
 
 def test_aurd_needs_thresholds():
@@ -164,9 +197,13 @@ def test_aurd_episode_baseline_ignores_a_constant_prediction_offset():
     """A scene the encoder has never seen: every observation is 2.0 off its prediction. Raw U_pred replans
     after every action; measured above the episode's floor only the first excess counts (then 0)."""
     offset = {t: 2.0 for t in range(20)}
-    raw = make_executor("aurd")
+    raw = make_executor("aurd", commit_after_cut=False)
     run(raw, ScriptedPolicy(latent_error=offset), 10)
     assert all(h == 1 for h, e in raw.plans)
+    # committing after each cut turns the chatter into a cut, a full plan, a cut, ...
+    raw = make_executor("aurd")
+    run(raw, ScriptedPolicy(latent_error=offset), 8)
+    assert raw.plans == [(1, "replan"), (5, "complete"), (1, "replan")]
     rel = make_executor("aurd", pred_baseline="episode")
     run(rel, ScriptedPolicy(latent_error=offset), 12)
     assert rel.plans[0] == (1, "replan") and rel.plans[1:] == [(5, "complete"), (5, "complete")]

@@ -106,6 +106,37 @@ def test_ema_target_moves_towards_online_encoder():
         torch.testing.assert_close(a, b + (o.detach() - b) * (1 - CFG.target_encoder.ema_decay))
 
 
+@pytest.mark.parametrize("res_blocks", [(), (1, 1, 1, 1)])
+def test_truncated_target_reads_an_earlier_stage_and_follows_it(res_blocks):
+    """``stages=2``: the latent pools the online CNN's second stage (its channels, layer-normalised), the
+    target keeps no weights of later stages, and the EMA moves each kept weight towards its namesake."""
+    torch.manual_seed(0)
+    cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 24, 32, 32),
+                                                             res_blocks=res_blocks))
+    cfg.target_encoder.stages = 2
+    m = CMSModel(cfg, vocab_size=12)
+    assert m.latent_dim == 24 and m.target.encoder.grid == 8
+    online = dict(m.backbone.vision.named_parameters())
+    kept = dict(m.target.encoder.named_parameters())
+    assert set(kept) < set(online) and not any(k.startswith(("net.6", "net.9", "res.2", "res.3")) for k in kept)
+    images = fake_batch(cfg)["images"]
+    z = m.backbone.vision.stages(images[:, :1])[1].mean(dim=(-1, -2)).flatten(1)
+    torch.testing.assert_close(m.target(images), torch.nn.functional.layer_norm(z, (24,)) / np.sqrt(24))
+    with torch.no_grad():
+        for p in m.backbone.vision.parameters():
+            p.add_(1.0)
+    before = {k: p.clone() for k, p in kept.items()}
+    m.update_target()
+    for k, p in m.target.encoder.named_parameters():
+        torch.testing.assert_close(p, before[k] + (online[k] - before[k]) * (1 - cfg.target_encoder.ema_decay))
+    with pytest.raises(ValueError, match="a CNN of 4 stages cannot keep 5"):
+        cfg.target_encoder.stages = 5
+        CMSModel(cfg, vocab_size=12)
+    cfg.target_encoder.stages, cfg.target_encoder.name = 2, "thumbnail"
+    with pytest.raises(ValueError, match="stages 2: only the 'ema' and 'frozen' encoders take it"):
+        CMSModel(cfg, vocab_size=12)
+
+
 def test_thumbnail_target_is_the_pooled_image_and_stays_put():
     """The weight-free target: the agent view average-pooled to grid x grid cells, layer-normalised and
     scaled to policy units; training cannot move it and checkpoints carry nothing for it."""
@@ -143,6 +174,24 @@ def test_downsampled_target_encodes_the_area_averaged_image():
     cfg.target_encoder.downsample = 3
     with pytest.raises(ValueError, match="downsample 3 must divide image_size 32"):
         CMSModel(cfg, vocab_size=12)
+    # only the CNN targets downsample: a thumbnail or DINOv2 target refuses the setting instead of ignoring it
+    cfg.target_encoder.downsample, cfg.target_encoder.name = 2, "thumbnail"
+    with pytest.raises(ValueError, match="downsample 2: only the .ema. and .frozen. encoders take it"):
+        CMSModel(cfg, vocab_size=12)
+
+
+def test_area_downsample_equals_pooling_the_float_tensor():
+    """The NumPy pooling in front of AURD's ONNX graph equals ``images_to_tensor`` + ``avg_pool2d``."""
+    from pivla.data.transforms import area_downsample, images_to_tensor
+
+    images = np.random.default_rng(0).integers(0, 256, (2, 3, 24, 16, 3), dtype=np.uint8)
+    for f in (1, 2, 4):
+        got = area_downsample(images, f)
+        want = torch.nn.functional.avg_pool2d(images_to_tensor(images).flatten(0, 1), f).unflatten(0, (2, 3))
+        assert got.dtype == np.float32 and got.shape == (2, 3, 3, 24 // f, 16 // f)
+        np.testing.assert_allclose(got, want.numpy(), atol=1e-6)
+    with pytest.raises(ValueError, match="factor 5 must divide the image size 24x16"):
+        area_downsample(images, 5)
 
 
 def test_demo_policy_encodes_its_agent_view_downsampled():
@@ -153,7 +202,9 @@ def test_demo_policy_encodes_its_agent_view_downsampled():
     for demo in (DemoConfig(), QUICK):
         cfg = model_config(demo)
         assert cfg.image_size == demo.image_size and cfg.target_encoder.downsample == demo.target_downsample > 1
-        assert CMSModel(cfg, vocab_size=12).target.downsample == demo.target_downsample
+        target = CMSModel(cfg, vocab_size=12).target
+        assert target.downsample == demo.target_downsample and cfg.target_encoder.stages == demo.target_stages
+        assert len(target.encoder.res) == (demo.target_stages or len(cfg.backbone.vision_channels))
     with pytest.raises(ValueError, match="image size 90 px is not a multiple"):
         model_config(DemoConfig(image_size=90))
 

@@ -17,10 +17,11 @@ from pivla.policy import Policy
 pytestmark = pytest.mark.skipif(not er.onnx_available(), reason="onnxruntime / onnxscript not installed")
 
 
-def make_policy(run_dir, runtime="onnx", seed=0, target="ema", downsample=1):
+def make_policy(run_dir, runtime="onnx", seed=0, target="ema", downsample=1, cameras=1, stages=0):
     torch.manual_seed(seed)
     cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32)),
-                      target_encoder=TargetEncoderConfig(name=target, grid=4, downsample=downsample))
+                      target_encoder=TargetEncoderConfig(name=target, grid=4, downsample=downsample, cameras=cameras,
+                                                         stages=stages))
     text = WordTokenizer.build(["pick up the block"], cfg.max_text_len)
     stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7), StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim))
     return Policy(CMSModel(cfg, len(text.vocab)), stats, text, run_dir=run_dir, encoder_runtime=runtime)
@@ -112,3 +113,22 @@ def test_runtime_choice_is_checked(tmp_path):
         make_policy(tmp_path, runtime="onnx", target="thumbnail")
     # no run directory: exported in memory, nothing written
     assert make_policy(None).encoder_runtime == "onnx"
+
+
+@pytest.mark.parametrize("stages", [0, 3])
+def test_downsampled_two_camera_target_matches_torch_and_refuses_a_wrong_shape(tmp_path, stages):
+    """The graph starts after the NumPy pooling and centring: both cameras, 4x smaller, all or three CNN
+    stages, same latents as the PyTorch target on the full picture; an input of another shape is refused."""
+    p = make_policy(tmp_path, downsample=4, cameras=2, stages=stages)
+    assert p.encoder_runtime == "onnx" and p._onnx_encoder.input_shape == (1, 2, 3, 8, 8)
+    p_torch = make_policy(None, "torch", downsample=4, cameras=2, stages=stages)
+    for s in range(3):
+        np.testing.assert_allclose(p.encode(obs(s)), p_torch.encode(obs(s)), atol=1e-5, rtol=1e-4)
+    assert p.encode(obs(0)).shape == (64,)  # two cameras of 32 channels (stages 3 and 4 both have 32)
+    with pytest.raises(ValueError, match=r"takes images of shape \(1, 2, 3, 8, 8\), got \(1, 2, 3, 16, 16\)"):
+        p._onnx_encoder(np.zeros((1, 2, 3, 16, 16), np.float32))
+    # the result is a copy: a later encoding does not change an earlier latent
+    first = p.encode(obs(0))
+    kept = first.copy()
+    p.encode(obs(1))
+    np.testing.assert_array_equal(first, kept)

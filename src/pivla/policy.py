@@ -17,9 +17,9 @@ from pivla.control.math import DEFAULT_ETA, action_uncertainty
 from pivla.data.dataset import proprio_vector, resize_images
 from pivla.data.normalize import NormStats
 from pivla.data.text import WordTokenizer, load_text_tokenizer
-from pivla.data.transforms import images_to_tensor
+from pivla.data.transforms import area_downsample, images_to_tensor
 from pivla.model import encoder_runtime as er
-from pivla.model.backbone import ConvEncoder
+from pivla.model.backbone import ConvEncoder, centre
 from pivla.model.cms import CMSModel
 from pivla.training import checkpoint as ck
 
@@ -98,8 +98,9 @@ class Policy:
         elif not er.onnx_available():
             reason = "onnxruntime, onnx or onnxscript is not installed"
         if reason is None:
-            shape = (target.cameras, 3, self.cfg.image_size, self.cfg.image_size)
-            self._onnx_encoder = er.onnx_target_encoder(target, shape, self.run_dir)
+            side = self.cfg.image_size // target.downsample
+            self._onnx_encoder = er.onnx_target_encoder(er.TargetLatents(target), (target.cameras, 3, side, side),
+                                                        self.run_dir)
             reason = None if self._onnx_encoder is not None else "export or check failed (logged above)"
         if reason is not None:
             if runtime == "onnx":
@@ -177,10 +178,11 @@ class Policy:
     @torch.inference_mode()
     def encode_batch(self, obs_list: list[dict]) -> np.ndarray:
         """Enc(o) for several observations: (N, d_z) target-encoder latents in the units of ``latents``."""
-        images = images_to_tensor(self._images(obs_list, self.model.target.cameras), self.device)
+        target = self.model.target
+        images = self._images(obs_list, target.cameras)
         if self._onnx_encoder is not None and len(obs_list) == 1:  # AURD's case; batches (calibration) stay in torch
-            return self._onnx_encoder(images.numpy())
-        return self.model.target(images).float().cpu().numpy()
+            return self._onnx_encoder(centre(area_downsample(images, target.downsample)))
+        return target(images_to_tensor(images, self.device)).float().cpu().numpy()
 
     def encode(self, obs: dict) -> np.ndarray:
         """Enc(o): the target encoder's latent of one observation (AURD's observed latent)."""

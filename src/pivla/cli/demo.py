@@ -47,6 +47,9 @@ class DemoConfig:
     # first (80 -> 20 px) makes that ~3x cheaper at no loss: 1290 against 1270 of 1440 validation episodes
     # (p 0.16; docs/results.md, session 16)
     target_downsample: int = 4
+    # all four CNN stages: a target that pools the third (40% of the weights, a cheaper encoding in the loop)
+    # trained a policy that lost 1399 against 1449 of 1620 validation episodes (docs/results.md, session 18)
+    target_stages: int = 0
     batch_size: int = protocol.BATCH_SIZE
     noise: float = 0.3  # DART: noise on executed expert actions, clean labels (recovery data)
     # share of training demos whose first grasp misses and is recovered (expert.py): without it the policy
@@ -94,7 +97,8 @@ def model_config(cfg: DemoConfig) -> ModelConfig:
     if cfg.image_size % cfg.target_downsample:
         raise ValueError(f"image size {cfg.image_size} px is not a multiple of the target encoder's downsampling "
                          f"({cfg.target_downsample}x)")
-    return ModelConfig(image_size=cfg.image_size, target_encoder=TargetEncoderConfig(downsample=cfg.target_downsample))
+    return ModelConfig(image_size=cfg.image_size,
+                       target_encoder=TargetEncoderConfig(downsample=cfg.target_downsample, stages=cfg.target_stages))
 
 
 def _stage(name: str, done: bool) -> bool:

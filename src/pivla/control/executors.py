@@ -9,10 +9,11 @@ the baselines.
 
 A trace row has U_act, U_pred, U and V of the executed step, ``replanned`` (the policy was queried at this
 step) and ``ended``: on a step that replanned, how the previous plan ended ("complete", "replan", "prune",
-"pause"). AURD adds ``event`` ("pause": the step held pose; "forced": executed after ``max_pauses``) and,
-where it cut a plan, ``ended_u`` / ``ended_v``: the U and V of the untrusted step it did not execute. The
-baselines do not decide on U_pred, but with ``monitor`` (default) they encode each new observation like
-AURD does so that their traces carry the same U: what AURD would have seen in their episodes (failure
+"pause"). AURD adds ``event`` ("pause": the step held pose; "forced": executed after ``max_pauses``),
+``committed`` (the plan was made right after a cut and runs unchecked) and, where it cut a plan,
+``ended_u`` / ``ended_v``: the U and V of the untrusted step it did not execute. The baselines do not
+decide on U_pred, but with ``monitor`` (default) they encode each new observation like AURD does so that
+their traces carry the same U: what AURD would have seen in their episodes (failure
 prediction, "why AURD does not help"). Monitoring never changes an action, and its time is kept apart
 (``monitor_s``) so that control rates compare the bare executors.
 """
@@ -231,6 +232,12 @@ class AURDExecutor(BaseExecutor):
     ``max_pauses`` pauses in a row the first action is executed anyway, so a static scene cannot stall the
     robot forever. ``check="after"`` is the paper's literal order (execute, observe, then test).
     Thresholds default to the policy's calibration (``pivla calibrate``).
+
+    ``commit_after_cut`` (default): the plan made right after a cut (replan, prune or pause) runs its nominal
+    horizon unchecked, and the plan after it is checked again. Without it a policy whose U stays above
+    tau_high in some state cut every new plan after one action or paused again and again until the step
+    limit (docs/results.md, "Session 18"). A committed step needs no observed latent for a decision; it is
+    still encoded for the trace as monitoring (``monitor``), outside the control time.
     """
 
     name: str = "aurd"
@@ -242,9 +249,11 @@ class AURDExecutor(BaseExecutor):
     horizon: int | None = None
     max_pauses: int = 3
     pred_baseline: str | None = None  # "episode": U_pred above the episode's floor (math.surprise); None: as calibrated
+    commit_after_cut: bool = True
     _plan: Plan | None = None
     _k: int = 0
     _pauses: int = 0
+    _committed: bool = False  # the current plan was made right after a cut and runs unchecked
 
     def __post_init__(self) -> None:
         if self.pred_baseline not in (None, "none", "episode"):
@@ -252,7 +261,7 @@ class AURDExecutor(BaseExecutor):
 
     def reset(self) -> None:
         super().reset()
-        self._plan, self._k, self._pauses = None, 0, 0
+        self._plan, self._k, self._pauses, self._committed = None, 0, 0, False
 
     def _pred_baseline(self, policy) -> str:
         return self.pred_baseline if self.pred_baseline is not None else super()._pred_baseline(policy)
@@ -282,10 +291,16 @@ class AURDExecutor(BaseExecutor):
         z_obs = None
         observed = self._plan is not None and self._k > 0  # o is the outcome of this plan's step k - 1
         # encode only what a decision reads: not after a plan's last step (it completes, and the new plan's
-        # first step has U_pred = 0), unless check="after" tests that step first
+        # first step has U_pred = 0), unless check="after" tests that step first; a committed plan's steps
+        # are read by no decision, only by the trace (monitoring)
         if observed and (self.check == "after" or self._k < min(H, len(self._plan.actions))):
-            z_obs = policy.encode(obs)
-        if self.check == "after" and observed:
+            if not self._committed:
+                z_obs = policy.encode(obs)
+            elif self.monitor:
+                t0 = time.perf_counter()
+                z_obs = policy.encode(obs)
+                self.monitor_s += time.perf_counter() - t0
+        if self.check == "after" and observed and not self._committed:
             k = self._k - 1  # the step just executed, now observed
             u_pred = self._u_pred(z_obs, self._plan.latents[k], baseline)
             u = eta * self._plan.u_act[k] + (1 - eta) * u_pred
@@ -300,11 +315,13 @@ class AURDExecutor(BaseExecutor):
         while True:
             if self._plan is None:
                 self._plan, self._k, replanned, z_obs = Plan.from_output(policy.infer(obs)), 0, True, None
+                self._committed = self.commit_after_cut and bool(self.plans) and self.plans[-1][1] != "complete"
             k, p = self._k, self._plan
             u_pred = 0.0 if k == 0 or z_obs is None else self._u_pred(z_obs, p.latents[k - 1], baseline)
             u = eta * float(p.u_act[k]) + (1 - eta) * u_pred
             v = p.value(k)
-            event = step_event(u, v, tau_low, tau_high, v_thresh) if self.check == "before" else None
+            checked = self.check == "before" and not self._committed
+            event = step_event(u, v, tau_low, tau_high, v_thresh) if checked else None
             if event is not None and k > 0:
                 ended, cut = event, {"ended_u": u, "ended_v": v}
                 self._end_plan(k, event)
@@ -313,11 +330,12 @@ class AURDExecutor(BaseExecutor):
                 self._pauses += 1
                 self._end_plan(0, "pause")
                 return self._emit(self.hold_action(), plan_step=0, replanned=replanned, u_act=p.u_act[0],
-                                  u_pred=u_pred, u=u, v=v, event="pause", ended=ended, **cut)
+                                  u_pred=u_pred, u=u, v=v, event="pause", ended=ended, committed=False, **cut)
             self._pauses = 0
             self._k += 1
             return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], u_pred=u_pred,
-                              u=u, v=v, event="forced" if event else None, ended=ended, **cut)
+                              u=u, v=v, event="forced" if event else None, ended=ended, committed=self._committed,
+                              **cut)
 
 
 EXECUTORS = {"aurd": AURDExecutor, "fixed": FixedExecutor, "ensemble": EnsembleExecutor, "adahorizon": AdaHorizonExecutor}

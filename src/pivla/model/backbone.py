@@ -17,6 +17,12 @@ from torch import nn
 from pivla.model.config import ModelConfig
 
 
+def centre(images):
+    """[0, 1] pixels -> [-1, 1], the CNN's input convention (tensors or arrays: AURD's ONNX path applies it in
+    NumPy in front of the graph)."""
+    return images * 2.0 - 1.0
+
+
 class ConvEncoder(nn.Module):
     """A small strided CNN shared by all cameras: image -> grid of feature tokens.
 
@@ -41,18 +47,37 @@ class ConvEncoder(nn.Module):
             nn.ModuleList(_ResBlock(c) for _ in range(n)) for c, n in zip(channels, counts, strict=True)
         )
         self.out_channels = c_in
-        self.grid = image_size
-        for _ in channels:
-            self.grid = (self.grid + 1) // 2
+        self.image_size = image_size
+        self.grid = self._grid(len(channels))
+
+    def _grid(self, stages: int) -> int:
+        """Side of the feature grid after ``stages`` stride-2 stages."""
+        grid = self.image_size
+        for _ in range(stages):
+            grid = (grid + 1) // 2
+        return grid
+
+    def truncate(self, stages: int) -> "ConvEncoder":
+        """Keep only the first ``stages`` stages (in place): a target encoder that reads an earlier stage."""
+        if not 1 <= stages <= len(self.res):
+            raise ValueError(f"a CNN of {len(self.res)} stages cannot keep {stages}")
+        self.net = self.net[: 3 * stages]
+        self.res = self.res[:stages]
+        self.out_channels = self.net[3 * stages - 3].out_channels
+        self.grid = self._grid(stages)
+        return self
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """(B, n_cam, 3, H, W) -> (B, n_cam, C, h, w)."""
         return self.stages(images)[-1]
 
-    def stages(self, images: torch.Tensor) -> list[torch.Tensor]:
-        """The output of every stage, each (B, n_cam, C_i, h_i, w_i)."""
+    def stages(self, images: torch.Tensor, centred: bool = False) -> list[torch.Tensor]:
+        """The output of every stage, each (B, n_cam, C_i, h_i, w_i), of images in [0, 1] (or already
+        ``centre``d)."""
         b, n = images.shape[:2]
-        x = images.flatten(0, 1) * 2.0 - 1.0
+        x = images.flatten(0, 1)
+        if not centred:
+            x = centre(x)
         outs = []
         for i, layer in enumerate(self.net):
             x = layer(x)
@@ -62,9 +87,9 @@ class ConvEncoder(nn.Module):
                 outs.append(x.unflatten(0, (b, n)))
         return outs
 
-    def pooled(self, images: torch.Tensor) -> torch.Tensor:
+    def pooled(self, images: torch.Tensor, centred: bool = False) -> torch.Tensor:
         """Global-average-pooled features of every camera, concatenated: (B, n_cam * C)."""
-        return self.forward(images).mean(dim=(-1, -2)).flatten(1)
+        return self.stages(images, centred)[-1].mean(dim=(-1, -2)).flatten(1)
 
 
 class _ResBlock(nn.Module):

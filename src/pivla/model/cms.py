@@ -135,6 +135,13 @@ class TargetEncoder(nn.Module):
         images = images[..., : self.cameras, :, :, :]
         if self.downsample > 1:
             images = F.avg_pool2d(images.flatten(0, -4), self.downsample).unflatten(0, images.shape[:-3])
+        return self.latents(images)
+
+    @torch.no_grad()
+    def latents(self, images: torch.Tensor) -> torch.Tensor:
+        """``forward`` after the camera selection and downsampling: (..., cameras, 3, h, w) -> (..., d_z).
+        The ONNX graph of AURD's encoding starts here (``pivla.model.encoder_runtime``); the cheap pooling
+        before it runs in NumPy (``pivla.data.transforms.area_downsample``)."""
         lead = images.shape[:-4]
         z = self.encoder.pooled(images.flatten(0, len(lead) - 1) if len(lead) > 1 else images)
         z = F.layer_norm(z.float(), z.shape[-1:]) / math.sqrt(z.shape[-1])
@@ -142,11 +149,13 @@ class TargetEncoder(nn.Module):
 
     @torch.no_grad()
     def update(self, online: nn.Module) -> None:
-        """EMA step towards the policy's online vision encoder (no-op for frozen encoders)."""
+        """EMA step towards the policy's online vision encoder (no-op for frozen encoders), parameter by name:
+        a truncated target (``TargetEncoderConfig.stages``) follows the stages it kept."""
         if self.kind != "ema":
             return
-        for p_t, p_o in zip(self.encoder.parameters(), online.parameters()):
-            p_t.lerp_(p_o.detach().to(p_t.dtype), 1.0 - self.ema_decay)
+        online_params = dict(online.named_parameters())
+        for name, p_t in self.encoder.named_parameters():
+            p_t.lerp_(online_params[name].detach().to(p_t.dtype), 1.0 - self.ema_decay)
 
 
 class Thumbnail(nn.Module):
@@ -167,12 +176,19 @@ class Thumbnail(nn.Module):
 
 def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder:
     tc = cfg.target_encoder
+    for key, default in (("downsample", 1), ("stages", 0)):
+        if getattr(tc, key) != default and tc.name not in ("ema", "frozen"):
+            raise ValueError(f"target encoder {key} {getattr(tc, key)}: only the 'ema' and 'frozen' encoders "
+                             f"take it, not {tc.name!r} (set it to {default})")
     if tc.name in ("ema", "frozen"):
         if not hasattr(backbone, "vision"):
             raise ValueError(f"target encoder {tc.name!r} needs a backbone with a 'vision' encoder; use dinov2")
         if cfg.image_size % tc.downsample:
             raise ValueError(f"target encoder downsample {tc.downsample} must divide image_size {cfg.image_size}")
-        return TargetEncoder(copy.deepcopy(backbone.vision), tc.name, tc.ema_decay, tc.cameras, tc.downsample)
+        encoder = copy.deepcopy(backbone.vision)
+        if tc.stages:
+            encoder.truncate(tc.stages)
+        return TargetEncoder(encoder, tc.name, tc.ema_decay, tc.cameras, tc.downsample)
     if tc.name == "dinov2":
         from pivla.model.dinov2 import Dinov2Encoder
 

@@ -53,6 +53,10 @@ class TargetEncoderConfig:
     # ``ema``/``frozen`` only: the image is area-averaged by this factor per side before encoding. The
     # encoding then costs about 1/factor**2 of the policy's vision pass, which is AURD's per-step overhead.
     downsample: int = 1
+    # ``ema``/``frozen`` only: the latent pools the output of the CNN's first ``stages`` stages (0: all). An
+    # earlier stage has a fraction of the weights, and AURD's encoding in the control loop costs mostly
+    # fetching them into a cache the simulator and renderer have just used.
+    stages: int = 0
 
 
 @dataclass
