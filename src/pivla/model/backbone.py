@@ -11,13 +11,14 @@ its own target encoder (the default) also exposes ``vision`` with ``pooled(image
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
 from pivla.model.config import ModelConfig
 
 
-def centre(images):
+def centre(images: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """[0, 1] pixels -> [-1, 1], the CNN's input convention (tensors or arrays: AURD's ONNX path applies it in
     NumPy in front of the graph)."""
     return images * 2.0 - 1.0

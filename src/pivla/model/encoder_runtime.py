@@ -46,8 +46,9 @@ def weights_digest(module: torch.nn.Module) -> str:
 
 
 def export_onnx(module: torch.nn.Module, image_shape: tuple[int, int, int]) -> bytes:
-    """(1, *image_shape) images in [0, 1] -> (1, d_z) latents as an ONNX graph. Batch 1 is fixed: it is AURD's
-    case, and ONNX Runtime plans a static graph better (0.85 against 1.03 ms with a dynamic batch axis)."""
+    """(1, *image_shape) images, as ``module`` takes them -> (1, d_z) latents as an ONNX graph. Batch 1 is
+    fixed: it is AURD's case, and ONNX Runtime plans a static graph better (0.85 against 1.03 ms with a
+    dynamic batch axis)."""
     example = torch.rand(1, *image_shape)
     # the exporter's progress notes ("torchvision is not installed", optimiser passes) are not ours to show
     loggers = [logging.getLogger(name) for name in ("torch.onnx", "onnxscript", "onnx_ir")]
@@ -69,10 +70,10 @@ class TargetLatents(torch.nn.Module):
     """The exported part of a CNN target encoder: ``TargetEncoder.latents`` of images already cut to its
     cameras, area-averaged (``pivla.data.transforms.area_downsample``) and centred
     (``pivla.model.backbone.centre``) in NumPy before the graph, with the final 1 / sqrt(d_z) as the layer
-    norm's scale. The graph then starts at the first convolution and ends at the layer norm: six nodes fewer
-    than ``latents`` itself, 0.03-0.06 ms less per encoding in the control loop (docs/results.md, session 18).
-    ``onnx_target_encoder`` checks the graph against this module, and the tests this module against
-    ``TargetEncoder``."""
+    norm's scale. The graph then starts at the first convolution and ends at the layer norm (33 nodes instead
+    of 36; in the twin's loop a graph like it encoded 0.01-0.07 ms faster, docs/results.md, session 18).
+    ``onnx_target_encoder`` checks the graph against this module; the tests check the whole ONNX path against
+    the PyTorch ``TargetEncoder``."""
 
     def __init__(self, target: torch.nn.Module):
         super().__init__()
