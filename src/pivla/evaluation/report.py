@@ -96,7 +96,8 @@ def _level(condition: str) -> int | None:
 
 def plot_timeline(row: dict, calib: dict | None, path: Path) -> None:
     """Paper Fig. 15: U, U_act, U_pred over one episode, thresholds, and where AURD replanned, pruned or
-    paused; a cut plan's untrusted step (never executed, so not on the curves) is marked by its U."""
+    paused; a cut plan's untrusted step (never executed, so not on the curves) is marked by its U, and the
+    steps of plans AURD committed to after a cut (run unchecked) are shaded."""
     plt = _plt()
     tr = row["trace"]
     t = np.array([r["t"] for r in tr])
@@ -107,6 +108,9 @@ def plot_timeline(row: dict, calib: dict | None, path: Path) -> None:
     if calib:
         ax.axhline(calib["tau_high"], color="r", ls="--", lw=1, label="tau_high")
         ax.axhline(calib["tau_low"], color="orange", ls="--", lw=1, label="tau_low")
+    committed = [r["t"] for r in tr if r.get("committed")]
+    for i, step in enumerate(committed):
+        ax.axvspan(step - 0.5, step + 0.5, color="grey", alpha=0.15, lw=0, label="committed" if i == 0 else None)
     colours = {"replan": "r", "prune": "orange", "pause": "purple"}
     for r in tr:
         for ev in {r.get("ended"), r.get("event")} & set(colours):
@@ -116,7 +120,7 @@ def plot_timeline(row: dict, calib: dict | None, path: Path) -> None:
     ax.set_xlabel("control step")
     ax.set_ylabel("uncertainty")
     ax.set_title(f"{row['task']} episode {row['episode']} ({'success' if row['success'] else 'failure'})")
-    ax.legend(fontsize=7, ncol=5, loc="upper left")
+    ax.legend(fontsize=7, ncol=6, loc="upper left")
     _save(fig, path)
 
 
