@@ -17,6 +17,9 @@ pytestmark = pytest.mark.skipif(bool(missing_toolchain()),
                                 reason=f"AVR/simavr toolchain missing: {missing_toolchain()}")
 
 TOL_US = 10.0  # pulse timing jitter: other ISRs (millis, UART) delay the Timer1 ISR by a few us
+# under a storm of garbage bytes the UART receive ISR delays Timer1's more often and longer (10.1 us seen
+# once in CI); any frame obeyed there would move a servo by hundreds of us (its targets are 1900)
+STORM_TOL_US = 25.0
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +114,7 @@ def test_garbage_truncated_and_corrupt_frames_never_move_a_servo(sim):
     st = board.state()  # not wedged
     assert st.targets_us == (1500,) * 7 and st.error_count > 0
     extremes = list(zip(sim.min_seen, sim.max_seen))
-    assert all(1500 - TOL_US < lo and hi < 1500 + TOL_US for lo, hi in extremes), extremes
+    assert all(1500 - STORM_TOL_US < lo and hi < 1500 + STORM_TOL_US for lo, hi in extremes), extremes
     board.close()
 
 
