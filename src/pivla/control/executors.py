@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -106,11 +108,19 @@ class BaseExecutor:
         plan predicted for ``obs``, None on a step that queried the policy), for a baseline's trace."""
         if not self.monitor:
             return {}
-        t0 = time.perf_counter()
-        u_pred = 0.0 if predicted is None else self._u_pred(policy.encode(obs), predicted, self._pred_baseline(policy))
-        eta = self._eta(policy)
-        self.monitor_s += time.perf_counter() - t0
+        with self._monitoring():
+            u_pred = 0.0 if predicted is None else self._u_pred(policy.encode(obs), predicted, self._pred_baseline(policy))
+            eta = self._eta(policy)
         return {"u_pred": u_pred, "u": eta * float(u_act) + (1 - eta) * u_pred}
+
+    @contextmanager
+    def _monitoring(self) -> Iterator[None]:
+        """Count the enclosed work as trace-only monitoring (``monitor_s``), not as control time."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.monitor_s += time.perf_counter() - t0
 
 
 def _jsonable(v: Any) -> Any:
@@ -253,7 +263,6 @@ class AURDExecutor(BaseExecutor):
     _plan: Plan | None = None
     _k: int = 0
     _pauses: int = 0
-    _committed: bool = False  # the current plan was made right after a cut and runs unchecked
 
     def __post_init__(self) -> None:
         if self.pred_baseline not in (None, "none", "episode"):
@@ -261,7 +270,7 @@ class AURDExecutor(BaseExecutor):
 
     def reset(self) -> None:
         super().reset()
-        self._plan, self._k, self._pauses, self._committed = None, 0, 0, False
+        self._plan, self._k, self._pauses = None, 0, 0
 
     def _pred_baseline(self, policy) -> str:
         return self.pred_baseline if self.pred_baseline is not None else super()._pred_baseline(policy)
@@ -278,6 +287,10 @@ class AURDExecutor(BaseExecutor):
         eta = self.eta if self.eta is not None else self._eta(policy)
         return tl, th, vt, eta
 
+    def _committed(self) -> bool:
+        """The current plan was made right after a cut (the plan log's last entry) and runs unchecked."""
+        return self.commit_after_cut and bool(self.plans) and self.plans[-1][1] != "complete"
+
     def _end_plan(self, h: int, event: str) -> None:
         self.plans.append((h, event))
         self._plan, self._k = None, 0
@@ -293,14 +306,14 @@ class AURDExecutor(BaseExecutor):
         # encode only what a decision reads: not after a plan's last step (it completes, and the new plan's
         # first step has U_pred = 0), unless check="after" tests that step first; a committed plan's steps
         # are read by no decision, only by the trace (monitoring)
+        committed = observed and self._committed()
         if observed and (self.check == "after" or self._k < min(H, len(self._plan.actions))):
-            if not self._committed:
+            if not committed:
                 z_obs = policy.encode(obs)
             elif self.monitor:
-                t0 = time.perf_counter()
-                z_obs = policy.encode(obs)
-                self.monitor_s += time.perf_counter() - t0
-        if self.check == "after" and observed and not self._committed:
+                with self._monitoring():
+                    z_obs = policy.encode(obs)
+        if self.check == "after" and observed and not committed:
             k = self._k - 1  # the step just executed, now observed
             u_pred = self._u_pred(z_obs, self._plan.latents[k], baseline)
             u = eta * self._plan.u_act[k] + (1 - eta) * u_pred
@@ -315,12 +328,12 @@ class AURDExecutor(BaseExecutor):
         while True:
             if self._plan is None:
                 self._plan, self._k, replanned, z_obs = Plan.from_output(policy.infer(obs)), 0, True, None
-                self._committed = self.commit_after_cut and bool(self.plans) and self.plans[-1][1] != "complete"
             k, p = self._k, self._plan
             u_pred = 0.0 if k == 0 or z_obs is None else self._u_pred(z_obs, p.latents[k - 1], baseline)
             u = eta * float(p.u_act[k]) + (1 - eta) * u_pred
             v = p.value(k)
-            checked = self.check == "before" and not self._committed
+            committed = self._committed()
+            checked = self.check == "before" and not committed
             event = step_event(u, v, tau_low, tau_high, v_thresh) if checked else None
             if event is not None and k > 0:
                 ended, cut = event, {"ended_u": u, "ended_v": v}
@@ -334,7 +347,7 @@ class AURDExecutor(BaseExecutor):
             self._pauses = 0
             self._k += 1
             return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], u_pred=u_pred,
-                              u=u, v=v, event="forced" if event else None, ended=ended, committed=self._committed,
+                              u=u, v=v, event="forced" if event else None, ended=ended, committed=committed,
                               **cut)
 
 

@@ -135,13 +135,6 @@ class TargetEncoder(nn.Module):
         images = images[..., : self.cameras, :, :, :]
         if self.downsample > 1:
             images = F.avg_pool2d(images.flatten(0, -4), self.downsample).unflatten(0, images.shape[:-3])
-        return self.latents(images)
-
-    @torch.no_grad()
-    def latents(self, images: torch.Tensor) -> torch.Tensor:
-        """``forward`` after the camera selection and downsampling: (..., cameras, 3, h, w) -> (..., d_z).
-        The ONNX graph of AURD's encoding starts here (``pivla.model.encoder_runtime``); the cheap pooling
-        before it runs in NumPy (``pivla.data.transforms.area_downsample``)."""
         lead = images.shape[:-4]
         z = self.encoder.pooled(images.flatten(0, len(lead) - 1) if len(lead) > 1 else images)
         z = F.layer_norm(z.float(), z.shape[-1:]) / math.sqrt(z.shape[-1])

@@ -67,7 +67,7 @@ def export_onnx(module: torch.nn.Module, image_shape: tuple[int, int, int]) -> b
 
 
 class TargetLatents(torch.nn.Module):
-    """The exported part of a CNN target encoder: ``TargetEncoder.latents`` of images already cut to its
+    """The exported part of a CNN target encoder: ``TargetEncoder.forward`` on images already cut to its
     cameras, area-averaged (``pivla.data.transforms.area_downsample``) and centred
     (``pivla.model.backbone.centre``) in NumPy before the graph, with the final 1 / sqrt(d_z) as the layer
     norm's scale. The graph then starts at the first convolution and ends at the layer norm (33 nodes instead
