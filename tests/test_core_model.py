@@ -192,6 +192,13 @@ def test_area_downsample_equals_pooling_the_float_tensor():
         np.testing.assert_allclose(got, want.numpy(), atol=1e-6)
     with pytest.raises(ValueError, match="factor 5 must divide the image size 24x16"):
         area_downsample(images, 5)
+    # written in place into a given array (AURD's bound graph input); another shape or dtype is refused
+    out = np.full((2, 3, 3, 12, 8), np.nan, np.float32)
+    assert area_downsample(images, 2, out=out) is out
+    np.testing.assert_array_equal(out, area_downsample(images, 2))
+    for bad in (np.zeros((2, 3, 3, 8, 12), np.float32), np.zeros((2, 3, 3, 12, 8), np.float64)):
+        with pytest.raises(ValueError, match=r"out must be a C-contiguous float32 array of shape \(2, 3, 3, 12, 8\)"):
+            area_downsample(images, 2, out=bad)
 
 
 def test_demo_policy_encodes_its_agent_view_downsampled():

@@ -132,3 +132,11 @@ def test_downsampled_two_camera_target_matches_torch_and_refuses_a_wrong_shape(t
     kept = first.copy()
     p.encode(obs(1))
     np.testing.assert_array_equal(first, kept)
+    # a bad picture is refused by name, and the next good one encodes as before
+    bad = {**obs(0), "eye_in_hand_rgb": obs(0)["eye_in_hand_rgb"].astype(np.float32)}
+    with pytest.raises(ValueError, match="'eye_in_hand_rgb' must be an HxWx3 uint8 image"):
+        p.encode(bad)
+    np.testing.assert_array_equal(p.encode(obs(0)), kept)
+    # a picture of another size is resized to the model's first, as in the batch path
+    big = {**obs(2), "agentview_rgb": np.repeat(np.repeat(obs(2)["agentview_rgb"], 2, 0), 2, 1)}
+    np.testing.assert_allclose(p.encode(big), p_torch.encode(big), atol=1e-5, rtol=1e-4)

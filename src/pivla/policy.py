@@ -119,18 +119,16 @@ class Policy:
             if not np.all(np.isfinite(np.asarray(obs[key], dtype=np.float64))):
                 raise ValueError(f"observation {key!r} contains NaN or inf")
 
+    def _image(self, obs: dict, camera: str) -> np.ndarray:
+        """(S, S, 3) uint8 picture of one camera, resized to the model's."""
+        im = np.asarray(obs[camera])
+        if im.ndim != 3 or im.shape[-1] != 3 or im.dtype != np.uint8:
+            raise ValueError(f"observation {camera!r} must be an HxWx3 uint8 image, got {im.shape} {im.dtype}")
+        return resize_images(im, self.cfg.image_size)
+
     def _images(self, obs_list: list[dict], cameras: int | None = None) -> np.ndarray:
         """(N, n_cam, S, S, 3) uint8 of the first ``cameras`` cameras (default all), resized to the model's."""
-        out = []
-        for obs in obs_list:
-            cams = []
-            for c in self.cfg.cameras[:cameras]:
-                im = np.asarray(obs[c])
-                if im.ndim != 3 or im.shape[-1] != 3 or im.dtype != np.uint8:
-                    raise ValueError(f"observation {c!r} must be an HxWx3 uint8 image, got {im.shape} {im.dtype}")
-                cams.append(resize_images(im, self.cfg.image_size))
-            out.append(np.stack(cams))
-        return np.stack(out)
+        return np.stack([np.stack([self._image(obs, c) for c in self.cfg.cameras[:cameras]]) for obs in obs_list])
 
     def model_inputs(self, obs_list: list[dict]) -> dict[str, torch.Tensor]:
         for obs in obs_list:
@@ -175,18 +173,30 @@ class Policy:
         value_now ()."""
         return {k: v[0] for k, v in self.infer_batch([obs]).items()}
 
-    @torch.inference_mode()
     def encode_batch(self, obs_list: list[dict]) -> np.ndarray:
         """Enc(o) for several observations: (N, d_z) target-encoder latents in the units of ``latents``."""
-        target = self.model.target
-        images = self._images(obs_list, target.cameras)
         if self._onnx_encoder is not None and len(obs_list) == 1:  # AURD's case; batches (calibration) stay in torch
-            return self._onnx_encoder(centre(area_downsample(images, target.downsample)))
-        return target(images_to_tensor(images, self.device)).float().cpu().numpy()
+            return self.encode(obs_list[0])[None]
+        return self._encode_torch(obs_list)
+
+    @torch.inference_mode()
+    def _encode_torch(self, obs_list: list[dict]) -> np.ndarray:
+        target = self.model.target
+        return target(images_to_tensor(self._images(obs_list, target.cameras), self.device)).float().cpu().numpy()
 
     def encode(self, obs: dict) -> np.ndarray:
-        """Enc(o): the target encoder's latent of one observation (AURD's observed latent)."""
-        return self.encode_batch([obs])[0]
+        """Enc(o): the target encoder's latent of one observation (AURD's observed latent).
+
+        On ONNX Runtime each camera's picture is area-averaged and centred straight into the graph's bound
+        input: AURD encodes every new observation, and the copies and temporaries of the batch path cost
+        as much again as the graph itself (docs/results.md, session 19)."""
+        if self._onnx_encoder is None:
+            return self._encode_torch([obs])[0]
+        target, images = self.model.target, self._onnx_encoder.inputs[0]
+        for camera, dst in zip(self.cfg.cameras[: target.cameras], images):
+            area_downsample(self._image(obs, camera), target.downsample, out=dst)
+        centre(images, inplace=True)
+        return self._onnx_encoder.run()[0]
 
     def to_actions(self, normalized: np.ndarray) -> np.ndarray:
         return self.stats.action.unnormalize(normalized)

@@ -263,6 +263,7 @@ class AURDExecutor(BaseExecutor):
     _plan: Plan | None = None
     _k: int = 0
     _pauses: int = 0
+    _settings: tuple | None = None  # thresholds, eta, U_pred baseline and horizon, fixed for an episode
 
     def __post_init__(self) -> None:
         if self.pred_baseline not in (None, "none", "episode"):
@@ -270,7 +271,7 @@ class AURDExecutor(BaseExecutor):
 
     def reset(self) -> None:
         super().reset()
-        self._plan, self._k, self._pauses = None, 0, 0
+        self._plan, self._k, self._pauses, self._settings = None, 0, 0, None
 
     def _pred_baseline(self, policy) -> str:
         return self.pred_baseline if self.pred_baseline is not None else super()._pred_baseline(policy)
@@ -296,9 +297,9 @@ class AURDExecutor(BaseExecutor):
         self._plan, self._k = None, 0
 
     def act(self, policy, obs: dict) -> np.ndarray:
-        tau_low, tau_high, v_thresh, eta = self._thresholds(policy)
-        baseline = self._pred_baseline(policy)
-        H = self.horizon or policy.horizon
+        if self._settings is None:
+            self._settings = (*self._thresholds(policy), self._pred_baseline(policy), self.horizon or policy.horizon)
+        tau_low, tau_high, v_thresh, eta, baseline, H = self._settings
         ended = None
         cut: dict[str, float] = {}  # U and V of the step a "replan" / "prune" did not trust
         z_obs = None

@@ -30,8 +30,9 @@ def prediction_uncertainty(observed_latent: np.ndarray | None, predicted_latent:
     """U_pred = || Enc(o_{t+k}) - z_hat_{t+k} ||_2; 0 when no observation is available yet."""
     if observed_latent is None or predicted_latent is None:
         return 0.0
-    diff = np.asarray(observed_latent, np.float64) - np.asarray(predicted_latent, np.float64)
-    return np.linalg.norm(diff, axis=-1)
+    # np.linalg.norm(axis=-1)'s arithmetic without its wrapper: AURD forms this after every observation
+    diff = np.subtract(observed_latent, predicted_latent, dtype=np.float64)
+    return np.sqrt(np.add.reduce(diff * diff, axis=-1))
 
 
 def surprise(u_pred: float, episode_min: float | None) -> float:

@@ -18,9 +18,13 @@ from torch import nn
 from pivla.model.config import ModelConfig
 
 
-def centre(images: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
+def centre(images: torch.Tensor | np.ndarray, inplace: bool = False) -> torch.Tensor | np.ndarray:
     """[0, 1] pixels -> [-1, 1], the CNN's input convention (tensors or arrays: AURD's ONNX path applies it in
-    NumPy in front of the graph)."""
+    NumPy in front of the graph, ``inplace`` in the graph's bound input)."""
+    if inplace:
+        images *= 2.0
+        images -= 1.0
+        return images
     return images * 2.0 - 1.0
 
 

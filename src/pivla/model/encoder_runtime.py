@@ -116,12 +116,22 @@ class OnnxEncoder:
     def input_shape(self) -> tuple[int, ...]:
         return self._in.shape
 
+    @property
+    def inputs(self) -> np.ndarray:
+        """The bound input array: a caller that prepares its images in place here, then calls ``run``, saves
+        a copy (``Policy.encode``)."""
+        return self._in
+
+    def run(self) -> np.ndarray:
+        """Latents of what ``inputs`` holds now."""
+        self.session.run_with_iobinding(self._binding)
+        return self._out.copy()
+
     def __call__(self, images: np.ndarray) -> np.ndarray:
         if images.shape != self._in.shape:
             raise ValueError(f"target encoder graph takes images of shape {self._in.shape}, got {images.shape}")
         np.copyto(self._in, images)
-        self.session.run_with_iobinding(self._binding)
-        return self._out.copy()
+        return self.run()
 
 
 def onnx_target_encoder(module: torch.nn.Module, image_shape: tuple[int, int, int], cache_dir: Path | None = None,

@@ -3,7 +3,8 @@
 ``list_tasks(suite)`` and ``make_env(suite, task, ...)`` follow :mod:`pivla.envs`; importing this module
 registers ``pivla/Tabletop-v0`` with gymnasium (``gymnasium.make("pivla/Tabletop-v0", suite=..., task=...)``).
 Rendering runs on the CPU: ``MUJOCO_GL`` defaults to ``egl`` (Mesa llvmpipe) when libEGL is present,
-else ``osmesa``. See docs/twin.md.
+else ``osmesa``; llvmpipe renders in the calling thread (``LP_NUM_THREADS=0``) unless the user sets it. See
+docs/twin.md.
 """
 
 from __future__ import annotations
@@ -14,6 +15,9 @@ import os
 if "MUJOCO_GL" not in os.environ:
     os.environ["MUJOCO_GL"] = "egl" if ctypes.util.find_library("EGL") else "osmesa"
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+# llvmpipe rasterises the twin's small pictures faster in the rendering thread than across its worker
+# threads: same pixels, and env.step took 0.3-1.3 ms less at 80 px on 2 cores (docs/results.md, session 19)
+os.environ.setdefault("LP_NUM_THREADS", "0")
 
 import gymnasium  # noqa: E402
 
