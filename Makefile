@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.pivla-setup
 
-.PHONY: setup setup-libero test test-slow demo demo-quick firmware clean
+.PHONY: setup setup-libero setup-openpi-client test test-slow demo demo-quick firmware clean
 
 setup: $(STAMP)
 
@@ -14,10 +14,14 @@ $(STAMP): pyproject.toml scripts/setup.sh
 setup-libero: $(STAMP)
 	bash scripts/setup-libero.sh
 
-test: setup setup-libero
+# openpi's published client in a venv of its own (it pins numpy<2): the serving tests run it against pivla's server
+setup-openpi-client:
+	bash scripts/setup-openpi-client.sh
+
+test: setup setup-libero setup-openpi-client
 	$(PY) -m pytest -q
 
-test-slow: setup setup-libero
+test-slow: setup setup-libero setup-openpi-client
 	$(PY) -m pytest -q -m slow
 
 demo: setup
@@ -30,4 +34,4 @@ firmware:
 	$(MAKE) -C firmware
 
 clean:
-	rm -rf runs build dist *.egg-info
+	rm -rf runs build dist *.egg-info .venv-openpi

@@ -3,7 +3,7 @@
 # then .venv with the package and its extras. Idempotent: re-running installs only what is missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-EXTRAS="${PIVLA_EXTRAS:-dev,robot,hf}"
+EXTRAS="${PIVLA_EXTRAS:-all,dev}"
 APT_PACKAGES=(libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libglfw3
               gcc-avr avr-libc binutils-avr simavr libsimavr-dev arduino-core-avr libelf-dev pkg-config)
 

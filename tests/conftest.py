@@ -16,7 +16,7 @@ def synthetic_data(tmp_path_factory):
 
 def tiny_train_config(data, out, **overrides):
     from pivla.model.config import BackboneConfig, ModelConfig
-    from pivla.training.trainer import TrainConfig
+    from pivla.training.config import TrainConfig
 
     model = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=2, vision_channels=(16, 32, 32, 32)))
     kw = dict(data=str(data), out=str(out), steps=20, batch_size=8, warmup=5, log_every=5, eval_every=10,
@@ -39,7 +39,7 @@ def run_two_process(tmp_path, worker_source: str, cfg) -> dict:
     torchrun = shutil.which("torchrun", path=str(Path(sys.executable).parent)) or shutil.which("torchrun")
     if torchrun is None:
         pytest.skip("torchrun not found")
-    (tmp_path / "cfg.json").write_text(cfgmod.dumps(cfg))
+    (tmp_path / "cfg.json").write_text(json.dumps(cfgmod.to_dict(cfg)))
     (tmp_path / "worker.py").write_text(worker_source)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", str(tmp_path / "worker.py"),

@@ -2,18 +2,21 @@
 
 import dataclasses
 import functools
-import os
 import json
+import os
 
 import pytest
 
 from pivla.control.calibrate import calibrate
-from pivla.data.format import read_dataset, write_episodes
+from pivla.control.executors import executor_config
+from pivla.data.datasets import read_dataset
+from pivla.data.format import write_episodes
 from pivla.envs.rollout import collect_episodes
 from pivla.envs.tabletop import make_env
 from pivla.envs.tabletop.expert import make_expert
 from pivla.evaluation.runner import EvalConfig, auroc, evaluate
 from pivla.policy import load_policy
+from pivla.training.checkpoint import write_calibration
 from pivla.training.trainer import train
 from tests.conftest import tiny_train_config
 
@@ -28,12 +31,13 @@ def tiny_policy(tmp_path_factory):
         eps = collect_episodes(functools.partial(make_env, "pick_place", task, image_size=32), make_expert(0.1), 2, seed=task)
         write_episodes(root / "data" / f"task{task}.hdf5", eps)
     run = train(tiny_train_config(root / "data", root / "run", steps=10, val_fraction=0.0))
-    calibrate(load_policy(run, device="cpu"), read_dataset(root / "data"), source="test")
+    calib, stats = calibrate(load_policy(run, device="cpu"), read_dataset(root / "data"), source="test")
+    write_calibration(run, vars(calib), stats)
     return run
 
 
 def _eval(run, out, executor="aurd", workers=1, seed=7, **kw):
-    cfg = EvalConfig(policy=str(run), out=str(out), tasks="0,1", executor=executor, episodes=2, seed=seed,
+    cfg = EvalConfig(policy=str(run), out=str(out), tasks="0,1", executor=executor_config(executor), episodes=2, seed=seed,
                      workers=workers, max_steps=12, videos=1, **kw)
     return evaluate(cfg, progress=False)
 
@@ -63,7 +67,7 @@ def test_bench_control_on_a_calibrated_run_times_the_same_plans(tiny_policy, cap
     controller alone and in closed loop with the twin."""
     from pivla.cli import main
 
-    assert main(["bench", "control", "--run", str(tiny_policy), "--steps", "12", "--repeats", "1",
+    assert main(["bench", "control", "--policy", str(tiny_policy), "--steps", "12", "--repeats", "1",
                  "--loop-episodes", "1", "--json"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["policy_queries"]["aurd"] == out["policy_queries"]["fixed"]
@@ -127,8 +131,9 @@ def test_every_executor_runs_and_report_renders(tiny_policy, tmp_path):
         assert _eval(tiny_policy, tmp_path / "cond" / ex, executor=ex)["executor"] == ex
     _eval(tiny_policy, tmp_path / "cond" / "aurd")
     report = write_report(tmp_path).read_text()
-    assert "AURD minus fixed" in report and (tmp_path / "figures" / "uncertainty_timeline.png").exists()
-    assert "episode by episode" in report and "| cond | " in report  # the paired table has the condition's row
+    assert "Each executor against AURD" in report and (tmp_path / "figures" / "uncertainty_timeline.png").exists()
+    # the paired table: the condition against every other executor, with the interval and McNemar's p
+    assert "episode by episode" in report and "| cond | fixed |" in report and "| cond | ensemble |" in report
 
 
 def test_report_takes_distraction_level_0_from_in_distribution(tiny_policy, tmp_path, monkeypatch):
@@ -144,22 +149,6 @@ def test_report_takes_distraction_level_0_from_in_distribution(tiny_policy, tmp_
     in_dist = json.loads((tmp_path / "in_distribution" / "aurd" / "results.json").read_text())
     assert sorted(seen["aurd"]) == [0, 2] and seen["aurd"][0] == in_dist
     assert "Level 0 of aurd is the in_distribution evaluation" in text
-
-
-def test_paired_outcomes_and_exact_mcnemar():
-    from pivla.evaluation.report import mcnemar_exact_p, paired_outcomes
-
-    def rows(successes):
-        return [{"task_index": 0, "episode": i, "seed": 100 + i, "success": s} for i, s in enumerate(successes)]
-
-    a, b = rows([1, 1, 0, 0, 1, 1]), rows([1, 0, 1, 0, 0, 0])
-    assert paired_outcomes(a, b) == {"both": 1, "a_only": 3, "b_only": 1, "neither": 1}
-    assert mcnemar_exact_p(3, 1) == pytest.approx(2 * (1 + 4) / 16)  # P(X <= 1), X ~ Bin(4, 1/2), doubled
-    assert mcnemar_exact_p(0, 5) == pytest.approx(2 / 32) and mcnemar_exact_p(4, 4) == 1.0 == mcnemar_exact_p(0, 0)
-    with pytest.raises(ValueError, match="same episodes"):
-        paired_outcomes(a, rows([1, 0, 1, 0, 0]))
-    with pytest.raises(ValueError, match="same episodes"):
-        paired_outcomes(a, [{**r, "seed": 0} for r in b])
 
 
 def test_rollouts_are_recorded_with_failures_for_training(tiny_policy, tmp_path):
@@ -182,7 +171,7 @@ def test_recordings_survive_an_interrupted_evaluation(tiny_policy, tmp_path):
     import numpy as np
 
     out, rec = tmp_path / "e", tmp_path / "rec"
-    cfg = EvalConfig(policy=str(tiny_policy), out=str(out), tasks="0", executor="fixed", episodes=1, seed=7,
+    cfg = EvalConfig(policy=str(tiny_policy), out=str(out), tasks="0", executor=executor_config("fixed"), episodes=1, seed=7,
                      max_steps=6, videos=0, record=str(rec))
     evaluate(cfg, progress=False)  # "interrupted" after one episode
     first = read_dataset(rec)
@@ -201,7 +190,7 @@ def test_recordings_survive_an_interrupted_evaluation(tiny_policy, tmp_path):
     # recorded test rollouts say so, and thresholds are never calibrated on them
     assert all(e.meta["split"] == "test" and e.meta["eval_seed"] == 7 for e in eps)
     with pytest.raises(ValueError, match="test rollouts"):
-        calibrate(load_policy(tiny_policy, device="cpu"), eps, save=False)
+        calibrate(load_policy(tiny_policy, device="cpu"), eps)
 
 
 def test_auroc_hand_computed():
@@ -230,7 +219,7 @@ def test_calibrate_on_the_runs_held_out_episodes(synthetic_data, tmp_path, capsy
     defaults = CalibrationConfig()
     assert stats["percentiles"] == {"tau_low": defaults.tau_low_pct, "tau_high": defaults.tau_high_pct,
                                     "v_thresh": defaults.v_pct}
-    assert main(["calibrate", "--policy", str(run), "--data", str(synthetic_data), "--held-out", "--tau-high-pct", "60"]) == 0
+    assert main(["calibrate", "--policy", str(run), "--data", str(synthetic_data), "--held-out", "--calibration.tau-high-pct", "60"]) == 0
     lower = json.loads((run / "calibration.json").read_text())
     assert json.loads((run / "calibration_stats.json").read_text())["percentiles"]["tau_high"] == 60
     assert lower["tau_low"] == saved["tau_low"] and lower["tau_high"] <= saved["tau_high"]
@@ -261,8 +250,8 @@ def test_calibration_with_episode_baseline_is_recorded_and_not_above_raw(tiny_po
     from pivla.control.calibrate import CalibrationConfig
 
     policy, demos = load_policy(tiny_policy, device="cpu"), read_dataset(tiny_policy.parent / "data")
-    raw, _ = calibrate(policy, demos, CalibrationConfig(), save=False)
-    rel, _ = calibrate(policy, demos, CalibrationConfig(pred_baseline="episode"), save=False)
+    raw, _ = calibrate(policy, demos, CalibrationConfig(pred_baseline="none"))
+    rel, _ = calibrate(policy, demos, CalibrationConfig(pred_baseline="episode"))
     assert raw.pred_baseline == "none" and rel.pred_baseline == "episode"
     assert rel.tau_high <= raw.tau_high and rel.tau_low <= raw.tau_low
 
@@ -283,10 +272,10 @@ def test_ablation_trains_calibrates_and_tabulates_variants(tiny_policy, tmp_path
     from tests.conftest import tiny_train_config
 
     data = tiny_policy.parent / "data"
-    cfg = AblationConfig(data=str(data), val=str(data), out=str(tmp_path / "abl"), steps=4, batch_size=4, tasks="0",
+    cfg = AblationConfig(data=str(data), val=str(data), out=str(tmp_path / "abl"), tasks="0",
                          episodes=1, val_episodes=1, workers=1, max_steps=8,
                          variants=("full", "il_only", "continuous_il_only", "fixed_h5"),
-                         model=tiny_train_config(data, tmp_path).model)
+                         train=tiny_train_config(data, tmp_path, steps=4, batch_size=4))
     table = run_ablation(cfg)
     for row in ("| full |", "| il_only |", "| fixed_h5 |"):
         assert row in table

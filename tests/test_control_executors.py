@@ -4,15 +4,14 @@ import numpy as np
 import pytest
 
 from pivla.control import make_executor
-from pivla.control.math import action_uncertainty
-from pivla.control.math import adahorizon
-from pivla.policy import Calibration
+from pivla.control.contract import Calibration, ChunkPolicy, PolicySpec
+from pivla.control.math import action_uncertainty, adahorizon
 
 
 class ScriptedPolicy:
     """Chunks whose k-th action is (plan id, k, ...); U_act, values and latents set per test."""
 
-    chunk, horizon = 8, 5
+    spec = PolicySpec(cameras=(), image_size=0, proprio=(), chunk=8, horizon=5, latent_dim=4)
 
     def __init__(self, u_act=None, values=None, latent_error=None, calibration=None):
         self.u_act = np.zeros(8) if u_act is None else np.asarray(u_act, float)
@@ -21,7 +20,6 @@ class ScriptedPolicy:
         self.calibration = calibration or Calibration(tau_low=0.2, tau_high=0.5, v_thresh=0.3, eta=0.7)
         self.queries = 0
         self.encoded = []
-        self.run_dir = None
 
     def infer(self, obs):
         self.queries += 1
@@ -245,3 +243,7 @@ def test_ensemble_traces_the_error_of_the_previous_query():
     run(ex, p, 3)
     assert p.encoded == [1, 2]  # t = 0 has no earlier prediction
     assert [r["u_pred"] for r in ex.trace] == [0.0, 1.0, 0.0]
+
+
+def test_the_scripted_policy_satisfies_the_contract_executors_rely_on():
+    assert isinstance(ScriptedPolicy(), ChunkPolicy)

@@ -2,9 +2,16 @@ import numpy as np
 import pytest
 
 from pivla.control import (
-    action_uncertainty, adahorizon, composite_uncertainty, decide_horizon, dequantize, ensemble_weights, surprise,
-    temporal_ensemble, wilson_interval,
+    action_uncertainty,
+    adahorizon,
+    composite_uncertainty,
+    decide_horizon,
+    dequantize,
+    ensemble_weights,
+    surprise,
+    temporal_ensemble,
 )
+from pivla.evaluation.stats import wilson_interval
 from pivla.model.tokenizer import bin_centers
 
 TL, TH, VT = 0.2, 0.5, 0.3

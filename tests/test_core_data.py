@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from pivla.data.dataset import ChunkDataset, fit_norm_stats, gae, prepare_episode, split_episodes
-from pivla.data.format import DatasetError, Episode, read_dataset, read_episodes, write_episodes
+from pivla.data.datasets import read_dataset
+from pivla.data.format import DatasetError, Episode, read_episodes, write_episodes
 from pivla.data.normalize import ActionStats
 from pivla.data.synthetic import synthetic_episode
 from pivla.data.text import WordTokenizer

@@ -182,7 +182,8 @@ def test_downsampled_target_encodes_the_area_averaged_image():
 
 def test_area_downsample_equals_pooling_the_float_tensor():
     """The NumPy pooling in front of AURD's ONNX graph equals ``images_to_tensor`` + ``avg_pool2d``."""
-    from pivla.data.transforms import area_downsample, images_to_tensor
+    from pivla.data.transforms import images_to_tensor
+    from pivla.model.pixels import area_downsample
 
     images = np.random.default_rng(0).integers(0, 256, (2, 3, 24, 16, 3), dtype=np.uint8)
     for f in (1, 2, 4):
@@ -201,19 +202,21 @@ def test_area_downsample_equals_pooling_the_float_tensor():
             area_downsample(images, 2, out=bad)
 
 
-def test_demo_policy_encodes_its_agent_view_downsampled():
-    """The demo (full and quick) trains with the target encoder's downsampling (its cheap U_pred), which
-    must divide the demo's resolution."""
-    from pivla.cli.demo import QUICK, DemoConfig, model_config
+def test_demo_policy_encodes_its_agent_view_downsampled(tmp_path):
+    """The recipe (full demo and quick) trains with the target encoder reading the agent view downsampled 4x
+    (its cheap U_pred) at 80 px; a resolution the downsampling does not divide is refused."""
+    from pivla.evaluation.demo import DemoConfig, quick, train_config
+    from pivla.training.config import TrainConfig
 
-    for demo in (DemoConfig(), QUICK):
-        cfg = model_config(demo)
-        assert cfg.image_size == demo.image_size and cfg.target_encoder.downsample == demo.target_downsample > 1
+    assert TrainConfig().model.image_size == 80 and TrainConfig().model.target_encoder.downsample == 4
+    for demo in (DemoConfig(), quick()):
+        cfg = train_config(demo, tmp_path / "data", tmp_path / "run").model
+        assert cfg.image_size == demo.image_size and cfg.target_encoder.downsample == 4
         target = CMSModel(cfg, vocab_size=12).target
-        assert target.downsample == demo.target_downsample and cfg.target_encoder.stages == demo.target_stages
-        assert len(target.encoder.res) == (demo.target_stages or len(cfg.backbone.vision_channels))
+        assert target.downsample == 4 and cfg.target_encoder.stages == 0
+        assert len(target.encoder.res) == len(cfg.backbone.vision_channels)
     with pytest.raises(ValueError, match="image size 90 px is not a multiple"):
-        model_config(DemoConfig(image_size=90))
+        train_config(DemoConfig(image_size=90), tmp_path / "data", tmp_path / "run")
 
 
 def test_spatial_softmax_finds_a_peak_where_it_is():

@@ -90,7 +90,7 @@ def test_bad_observations_and_corrupt_model_get_named_errors(tmp_path, synthetic
     policy = load_policy(run, device="cpu")
     obs = _obs()
     del obs["ee_pos"]
-    with pytest.raises(KeyError, match="ee_pos"):
+    with pytest.raises(ValueError, match="ee_pos"):
         policy.infer(obs)
     obs = _obs()
     obs["ee_pos"] = np.array([np.nan, 0, 0])
@@ -112,11 +112,11 @@ def test_cli_flags_reach_nested_config(tmp_path, synthetic_data, capsys):
     out = tmp_path / "cli"
     rc = main(["train", "--data", str(synthetic_data), "--out", str(out), "--steps", "2", "--batch-size", "4",
                "--model.image_size", "32", "--model.backbone.d_model", "32", "--loss.alpha", "0.2",
-               "--progress", "false", "--ckpt-every", "2", "--eval-every", "2"])
+               "--no-progress", "--ckpt-every", "2", "--eval-every", "2"])
     assert rc == 0
     cfg = json.loads((out / ck.CONFIG_FILE).read_text())
     assert cfg["model"]["backbone"]["d_model"] == 32 and cfg["loss"]["alpha"] == 0.2 and cfg["batch_size"] == 4
-    assert main(["info", str(out)]) == 0
+    assert main(["info", "--policy", str(out)]) == 0
     assert "step 2/2" in capsys.readouterr().out
 
 
@@ -124,7 +124,7 @@ def test_cli_flags_reach_nested_config(tmp_path, synthetic_data, capsys):
 def test_one_head_policy_executes_its_head_and_has_no_action_uncertainty(tmp_path, synthetic_data, head):
     """Table 4's one-head variants: the trained head is executed, and U_act (the disagreement of two trained
     heads, Eq. 13) is zero instead of a comparison with the untrained head."""
-    from pivla.data.format import read_dataset
+    from pivla.data.datasets import read_dataset
     from pivla.training.losses import LossConfig
 
     other = "use_discrete" if head == "continuous" else "use_continuous"
@@ -135,7 +135,7 @@ def test_one_head_policy_executes_its_head_and_has_no_action_uncertainty(tmp_pat
     out = policy.infer(obs)
     primary = out["continuous_normalized"] if head == "continuous" else out["dequantized"]
     assert policy.action_head == head and np.allclose(out["actions_normalized"], primary)
-    assert out["u_act"].shape == (policy.chunk,) and not out["u_act"].any()
+    assert out["u_act"].shape == (policy.spec.chunk,) and not out["u_act"].any()
     untrained = "discrete" if head == "continuous" else "continuous"
     with pytest.raises(ValueError, match="trained only its"):
         load_policy(run, device="cpu", gripper_head=untrained)

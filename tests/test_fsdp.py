@@ -5,16 +5,16 @@ uninterrupted run bit for bit (so the optimizer moments survive the full-tensor 
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import logging
 from pathlib import Path
 
 import pytest
 
-from pivla import config as cfgmod
+from pivla.cli import main
+from pivla.cli.train import TrainCommand  # a module-level name: the command line reads capture's type hint
 from pivla.data.synthetic import make_synthetic_dataset
-from pivla.training.trainer import Trainer, TrainConfig, _fsdp_blocks, _fsdp_plugin
+from pivla.training.trainer import Trainer, _fsdp_blocks, _fsdp_plugin
 from tests.conftest import run_two_process, tiny_train_config
 
 WORKER = '''
@@ -72,7 +72,7 @@ if trainer.acc.is_main_process:
 trainer.acc.wait_for_everyone()  # no rank tears the group down while rank 0 still writes its findings
 trainer.acc.end_training()  # destroys the process group; left to interpreter exit, gloo can abort a rank
 # C++ destructors at interpreter exit still abort a rank now and then ('terminate called without an active
-# exception', ~1 run in 8 before this session's changes too); the findings are written, so leave at once
+# exception', ~1 run in 8 even with the teardown above); the findings are written, so leave at once
 import os; os._exit(0)
 '''
 
@@ -95,15 +95,19 @@ def test_two_process_fsdp_shards_saves_full_and_resumes(tmp_path):
 
 def test_fsdp_option_plumbing(tmp_path, monkeypatch, caplog):
     """What can be checked in one process: the flag, the plugin, FSDP1 refused, and no sharding without a launcher."""
-    from pivla.cli.train import register
     from pivla.model.cms import CMSModel
 
+    parsed = []
+
+    def capture(cmd: TrainCommand) -> int:
+        parsed.append(cmd.run)
+        return 0
+
+    monkeypatch.setattr("pivla.cli.train.train", capture)  # the real command line, without the training
+    assert main(["train", "--fsdp"]) == 0 and parsed[0].fsdp
     for var in ("ACCELERATE_USE_FSDP", "FSDP_VERSION", "FSDP_CPU_RAM_EFFICIENT_LOADING"):
         monkeypatch.setenv(var, "")  # recorded, so that what Accelerate writes into the environment is undone
         monkeypatch.delenv(var)
-    parser = argparse.ArgumentParser()
-    register("train", parser)
-    assert cfgmod.build_config(TrainConfig, parser.parse_args(["--fsdp", "true"])).fsdp
     cfg = _fsdp_config(tmp_path)
     assert _fsdp_plugin(dataclasses.replace(cfg, fsdp=False)) is None
     plugin = _fsdp_plugin(cfg)

@@ -12,10 +12,13 @@ import torch
 pytest.importorskip("transformers")
 pytest.importorskip("peft")
 
+from pivla.bench.hf import HFBenchConfig, make_tiny_dinov2, make_tiny_vlm, run_hf_bench  # noqa: E402
 from pivla.model.cms import CMSModel  # noqa: E402
 from pivla.model.config import BackboneConfig, ModelConfig, TargetEncoderConfig  # noqa: E402
-from pivla.model.dinov2 import Dinov2Encoder, make_tiny_dinov2  # noqa: E402
-from pivla.model.hf import HFBackbone, HFTextTokenizer, PixelSpec, make_tiny_vlm  # noqa: E402
+from pivla.model.dinov2 import Dinov2Encoder  # noqa: E402
+from pivla.model.hf.backbone import HFBackbone  # noqa: E402
+from pivla.model.hf.pixels import PixelSpec  # noqa: E402
+from pivla.model.hf.text import HFTextTokenizer  # noqa: E402
 
 SIZE = 32
 
@@ -202,23 +205,6 @@ def test_clear_errors_for_bad_checkpoint_dirs(dirs, tmp_path):
         HFBackbone(model_cfg({"vlm": tmp_path / "openvla", "dino": dirs["dino"]}))
 
 
-def test_cli_flag_spellings():
-    import argparse
-
-    from pivla import config as cfgmod
-    from pivla.training.trainer import TrainConfig
-
-    parser = argparse.ArgumentParser()
-    cfgmod.add_config_args(parser, TrainConfig)
-    args = parser.parse_args(["--backbone", "hf", "--backbone.path", "/m", "--backbone.lora-rank", "8",
-                              "--target-encoder", "dinov2", "--target-encoder.path", "/d",
-                              "--model.backbone.gradient-checkpointing", "true"])
-    cfg = cfgmod.build_config(TrainConfig, args)
-    bb, te = cfg.model.backbone, cfg.model.target_encoder
-    assert (bb.name, bb.path, bb.lora_rank, bb.gradient_checkpointing) == ("hf", "/m", 8, True)
-    assert (te.name, te.path) == ("dinov2", "/d")
-
-
 def test_llava_with_a_dinov2_vision_tower(tmp_path):
     """Another Llava-style layout: DINOv2 tower, second-to-last layer, CLS dropped ('default' strategy)."""
     path = make_tiny_vlm(tmp_path / "vlm", image_size=SIZE, vision="dinov2")
@@ -232,3 +218,26 @@ def test_llava_with_a_dinov2_vision_tower(tmp_path):
     h_cog, h_mot = backbone(batch)
     h_mot.square().mean().backward()
     assert h_cog.shape == (2, 2, 64) and backbone.queries.grad.abs().sum() > 0
+
+
+def test_hf_bench_times_the_tiny_stack():
+    out = run_hf_bench(HFBenchConfig(repeats=1, threads=0, lora_rank=4))
+    assert out["vlm"] == "tiny-random-llava" and out["threads"] == torch.get_num_threads()
+    assert all(out[k] > 0 for k in ("infer_ms", "target_encoder_ms", "train_step_ms"))
+    counts = out["parameters"]
+    assert 0 < counts["trainable"] < counts["total"]  # LoRA: the base weights stay frozen
+    with pytest.raises(ValueError, match="repeats must be at least 1"):
+        run_hf_bench(HFBenchConfig(repeats=0))
+
+
+def test_tiny_checkpoints_go_to_new_directories_and_leave_the_rng_alone(tmp_path):
+    state = torch.random.get_rng_state()
+    a = make_tiny_dinov2(tmp_path / "a", seed=1)
+    assert torch.equal(state, torch.random.get_rng_state())
+    b = make_tiny_dinov2(tmp_path / "b", seed=1)
+    assert (a / "model.safetensors").read_bytes() == (b / "model.safetensors").read_bytes()  # seeded
+    with pytest.raises(FileExistsError, match="exists"):
+        make_tiny_dinov2(a)
+    with pytest.raises(ValueError, match="unknown tiny vision tower"):
+        make_tiny_vlm(tmp_path / "c", vision="clip")
+    assert not (tmp_path / "c").exists()

@@ -8,10 +8,9 @@ import pytest
 pytest.importorskip("transformers")
 pytest.importorskip("peft")
 
+from pivla.bench.hf import make_tiny_dinov2, make_tiny_vlm  # noqa: E402
 from pivla.data.synthetic import make_synthetic_dataset  # noqa: E402
 from pivla.model.config import BackboneConfig, ModelConfig, TargetEncoderConfig  # noqa: E402
-from pivla.model.dinov2 import make_tiny_dinov2  # noqa: E402
-from pivla.model.hf import make_tiny_vlm  # noqa: E402
 from pivla.training.trainer import TrainConfig  # noqa: E402
 from tests.conftest import run_two_process  # noqa: E402
 
@@ -34,7 +33,7 @@ if dist.get_rank() == 0:
 trainer.acc.wait_for_everyone()  # no rank tears the group down while rank 0 still writes its findings
 trainer.acc.end_training()  # destroys the process group; left to interpreter exit, gloo can abort a rank
 # C++ destructors at interpreter exit still abort a rank now and then ('terminate called without an active
-# exception', ~1 run in 8 before this session's changes too); the findings are written, so leave at once
+# exception', ~1 run in 8 even with the teardown above); the findings are written, so leave at once
 import os; os._exit(0)
 '''
 

@@ -1,9 +1,10 @@
-"""End to end on the ``hf`` backbone: ``pivla train`` with LoRA + DINOv2, checkpoint contents, resume,
-``load_policy``, and ``pivla merge-lora`` giving the same outputs as the adapters."""
+"""End to end on the ``hf`` backbone: training with LoRA + DINOv2, checkpoint contents, resume, ``load_policy``,
+and merging the adapters (``merge_run``) giving the same outputs as the adapters."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,28 +16,29 @@ pytest.importorskip("peft")
 from safetensors.torch import load_file  # noqa: E402
 
 from pivla import load_policy  # noqa: E402
-from pivla.cli import main  # noqa: E402
-from pivla.data.format import read_dataset  # noqa: E402
+from pivla.bench.hf import make_tiny_dinov2, make_tiny_vlm  # noqa: E402
+from pivla.data.datasets import read_dataset  # noqa: E402
 from pivla.data.synthetic import make_synthetic_dataset  # noqa: E402
-from pivla.model.dinov2 import make_tiny_dinov2  # noqa: E402
-from pivla.model.hf import make_tiny_vlm  # noqa: E402
+from pivla.model.config import BackboneConfig, ModelConfig, TargetEncoderConfig  # noqa: E402
+from pivla.training.config import TrainConfig  # noqa: E402
+from pivla.training.merge import MergeConfig, merge_run  # noqa: E402
+from pivla.training.trainer import train  # noqa: E402
 
 
 def test_train_resume_load_and_merge(tmp_path):
     vlm, dino = make_tiny_vlm(tmp_path / "vlm"), make_tiny_dinov2(tmp_path / "dino")
     data = make_synthetic_dataset(tmp_path / "data", 2, 12, 32)
     run, merged = tmp_path / "run", tmp_path / "merged"
-    common = ["--data", str(data), "--out", str(run), "--backbone", "hf", "--backbone.path", str(vlm),
-              "--backbone.lora-rank", "8", "--target-encoder", "dinov2", "--target-encoder.path", str(dino),
-              "--model.image_size", "32", "--model.max_text_len", "24", "--batch_size", "4", "--warmup", "1",
-              "--lr", "1e-2", "--progress", "false", "--log_every", "1", "--eval_every", "100", "--ckpt_every", "2",
-              "--threads", "2", "--seed", "3"]
-    assert main(["train", *common, "--steps", "2"]) == 0
+    model = ModelConfig(image_size=32, max_text_len=24, backbone=BackboneConfig(name="hf", path=str(vlm), lora_rank=8),
+                        target_encoder=TargetEncoderConfig(name="dinov2", path=str(dino)))
+    cfg = TrainConfig(data=str(data), out=str(run), steps=2, batch_size=4, warmup=1, lr=1e-2, progress=False,
+                      log_every=1, eval_every=100, ckpt_every=2, threads=2, seed=3, model=model)
+    assert train(cfg) == run
     state = load_file(str(run / "model.safetensors"))
     assert not [k for k in state if k.startswith("target.") or ("backbone.vlm." in k and "lora_" not in k)]
     assert len([k for k in state if "lora_" in k]) == 2 * 4 * 2
     assert any(k.startswith("discrete_head.") for k in state) and "backbone.motor_readout.weight" in state
-    assert main(["train", *common, "--steps", "4", "--resume"]) == 0
+    train(replace(cfg, steps=4), resume=True)
     assert json.loads((run / "status.json").read_text())["step"] == 4
     state = load_file(str(run / "model.safetensors"))
     assert all(float(v.abs().max()) > 0 for k, v in state.items() if "lora_B" in k)  # adapters learned
@@ -50,7 +52,7 @@ def test_train_resume_load_and_merge(tmp_path):
     assert a["actions"].shape == (8, 7) and a["discrete_probs"].shape == (8, 7, 256)
     assert a["latents"].shape == (8, 32) and np.isfinite(a["actions"]).all()  # agent-view latent only
 
-    assert main(["merge-lora", str(run), "--out", str(merged), "--device", "cpu"]) == 0
+    assert merge_run(MergeConfig(policy=str(run), out=str(merged), device="cpu")) == merged
     base = load_file(str(vlm / "model.safetensors"))
     folded = load_file(str(merged / "backbone" / "model.safetensors"))
     assert not any("lora_" in k for k in folded)
@@ -62,6 +64,6 @@ def test_train_resume_load_and_merge(tmp_path):
     for k in a:
         np.testing.assert_allclose(a[k], b[k], rtol=1e-4, atol=1e-5, err_msg=k)
     with pytest.raises(FileExistsError):
-        main(["merge-lora", str(run), "--out", str(merged)])
+        merge_run(MergeConfig(policy=str(run), out=str(merged)))
     with pytest.raises(ValueError, match="no LoRA adapters"):
-        main(["merge-lora", str(merged), "--out", str(tmp_path / "again")])
+        merge_run(MergeConfig(policy=str(merged), out=str(tmp_path / "again")))

@@ -16,9 +16,9 @@ requires_libero = pytest.mark.skipif(
 )
 
 
-@pytest.mark.parametrize("flags,message", [(["--perturb", "unseen_env"], "--perturb"),
-                                           (["--noise", "0.1"], "--noise"),
-                                           (["--paraphrase"], "--paraphrase")])
+@pytest.mark.parametrize("flags,message", [(["--perturb", "unseen_env"], "perturb"),
+                                           (["--paraphrase"], "paraphrase"),
+                                           (["--realism", "servo"], "realism servo")])
 def test_twin_only_options_are_refused(tmp_path, flags, message):
     with pytest.raises(SystemExit, match=message):
         main(["collect", "--env", "libero", "--suite", "libero_spatial", "--tasks", "0", "--episodes", "1",
@@ -28,16 +28,17 @@ def test_twin_only_options_are_refused(tmp_path, flags, message):
 
 @requires_libero
 def test_suites_without_expert_are_refused(tmp_path):
-    with pytest.raises(SystemExit, match="scripted experts exist for libero_spatial and libero_object"):
-        main(["collect", "--env", "libero", "--suite", "libero_goal", "--tasks", "0", "--episodes", "1",
+    with pytest.raises(SystemExit, match="scripted experts exist for the libero_spatial, libero_object"):
+        main(["collect", "--env", "libero", "--suite", "libero_90", "--tasks", "0", "--episodes", "1",
               "--out", str(tmp_path)])
+    assert not list(tmp_path.glob("*.hdf5"))
 
 
 @requires_libero
 @pytest.mark.slow
 def test_collect_one_libero_episode(tmp_path):
     """One rendered expert episode (~20 s): stored frames, actions, success and metadata read back."""
-    from pivla.data.format import read_dataset
+    from pivla.data.datasets import read_dataset
 
     code = main(["collect", "--env", "libero", "--suite", "libero_spatial", "--tasks", "5", "--episodes", "1",
                  "--out", str(tmp_path), "--image-size", "32"])

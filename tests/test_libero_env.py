@@ -151,14 +151,86 @@ def test_tiny_policy_evaluates_on_libero_from_given_init_states(synthetic_data, 
     results.json as the twin; episode e starts from official init state first_init_state + e."""
     import json
 
+    from pivla.control.executors import executor_config
     from pivla.evaluation.runner import EvalConfig, evaluate
     from pivla.training.trainer import train
     from tests.conftest import tiny_train_config
 
     run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=4, val_fraction=0.0))
     cfg = EvalConfig(policy=str(run), out=str(tmp_path / "eval"), env="libero", suite="libero_spatial", tasks="0",
-                     executor="fixed", episodes=2, max_steps=3, videos=0, first_init_state=40)
+                     executor=executor_config("fixed"), episodes=2, max_steps=3, videos=0, first_init_state=40)
     res = evaluate(cfg, progress=False)
     assert res["episodes"] == 2 and res["executor"] == "fixed" and 0 <= res["ci95"][0] <= res["ci95"][1] <= 1
     rows = [json.loads(line) for line in (tmp_path / "eval" / "episodes.jsonl").read_text().splitlines()]
     assert sorted(r["init_state"] for r in rows) == [40, 41] and all(r["steps"] == 3 for r in rows)
+
+
+@requires_libero
+def test_sampled_scenes_are_seeded_and_never_official():
+    """``{"init": "random", "seed": s}``: the same scene for the same seed (every qpos and qvel, and the fixture
+    placements), another for another seed, none equal to an official init state; official states are found."""
+    from pivla.envs import make_env
+
+    env = make_env("libero", "libero_goal", 8, render=False, settle_steps=0)
+    try:
+        model = env.robosuite_env.sim.model._model
+        _, info = env.reset(options={"init": "random", "seed": 7})
+        first, fixtures = env._env.get_sim_state(), model.body_pos.copy()
+        assert info["init_state"] is None and info["init_seed"] == 7 and info["redraws"] == 0
+        assert env.init_state is None and env.init_seed == 7
+        env.reset(options={"init": "random", "seed": 8})
+        other = env._env.get_sim_state()
+        env.reset(options={"init_state": 3})  # in between: an official state must not leak into the next sample
+        env.reset(options={"init": "random", "seed": 7})
+        np.testing.assert_array_equal(env._env.get_sim_state(), first)
+        np.testing.assert_array_equal(model.body_pos, fixtures)
+        assert np.abs(other[1:] - first[1:]).max() > 1e-3
+        for state in (first, other):
+            assert env.official_match(state) is None
+        assert env.official_match(env.init_states[11]) == 11
+    finally:
+        env.close()
+
+
+@requires_libero
+def test_a_sample_equal_to_an_official_state_is_drawn_again(monkeypatch):
+    from pivla.envs import make_env
+
+    env = make_env("libero", "libero_goal", 8, render=False, settle_steps=0)
+    try:
+        env.reset(options={"init": "random", "seed": 5})
+        drawn = env._env.get_sim_state()
+        official = env.init_states.copy()
+        official[20] = drawn  # pretend seed 5's scene were official state 20
+        monkeypatch.setattr(env, "init_states", official)
+        _, info = env.reset(options={"init": "random", "seed": 5})
+        assert info["redraws"] == 1 and env.official_match(env._env.get_sim_state()) is None
+        assert np.abs(env._env.get_sim_state()[1:] - drawn[1:]).max() > 1e-3
+    finally:
+        env.close()
+
+
+@requires_libero
+def test_random_init_config_and_bad_reset_options():
+    from pivla.envs import make_env
+
+    env = make_env("libero", "libero_object", 0, render=False, init="random", settle_steps=0)
+    try:
+        _, info = env.reset(seed=3)
+        state = env._env.get_sim_state()
+        assert info["init_state"] is None and info["init_seed"] is not None
+        _, again = env.reset(seed=3)
+        assert again["init_seed"] == info["init_seed"]
+        np.testing.assert_array_equal(env._env.get_sim_state(), state)
+        _, official = env.reset(options={"init_state": 2})
+        assert official["init_state"] == 2 and official["init_seed"] is None
+        with pytest.raises(ValueError, match="init"):
+            env.reset(options={"init": "sampled"})
+        with pytest.raises(ValueError, match="init_state"):
+            env.reset(options={"init": "random", "init_state": 1})
+        with pytest.raises(ValueError, match="init"):
+            env.reset(options={"seeed": 1})
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="init must be one of"):
+        make_env("libero", "libero_object", 0, render=False, init="sampled")

@@ -1,5 +1,6 @@
-"""``pivla convert-openvla`` on a tiny random checkpoint written in OpenVLA's released on-disk layout (timm /
-Prismatic key names, two shards and an index, config.json, preprocessor_config.json, tokenizer).
+"""``convert_openvla`` (``pivla convert-openvla``) on a tiny random checkpoint written in OpenVLA's released
+on-disk layout (timm / Prismatic key names, two shards and an index, config.json, preprocessor_config.json,
+tokenizer).
 
 The converted transformers towers and projector are checked against a reference written directly from the
 timm-layout weights (a plain-torch timm ViT block and Prismatic's projector), and the ``hf`` backbone is
@@ -21,12 +22,16 @@ from safetensors import safe_open  # noqa: E402
 from safetensors.torch import save_file  # noqa: E402
 
 from pivla import load_policy  # noqa: E402
-from pivla.cli import main  # noqa: E402
-from pivla.data.format import read_dataset  # noqa: E402
+from pivla.bench.hf import write_tiny_tokenizer  # noqa: E402
+from pivla.data.datasets import read_dataset  # noqa: E402
 from pivla.data.synthetic import make_synthetic_dataset  # noqa: E402
 from pivla.model.config import BackboneConfig, ModelConfig  # noqa: E402
-from pivla.model.hf import HFBackbone, HFTextTokenizer, write_tiny_tokenizer  # noqa: E402
+from pivla.model.hf.backbone import HFBackbone  # noqa: E402
+from pivla.model.hf.text import HFTextTokenizer  # noqa: E402
 from pivla.model.openvla import OpenVLAModel, convert_openvla  # noqa: E402
+from pivla.training.config import TrainConfig  # noqa: E402
+from pivla.training.merge import MergeConfig, merge_run  # noqa: E402
+from pivla.training.trainer import train  # noqa: E402
 
 SIZE, PATCH, HEADS, DEPTH = 32, 8, 16, 3  # 16 heads as in both timm definitions; 4 x 4 patches
 D_DINO, D_SIG, MLP_SIG, LLM = 32, 48, 80, 64
@@ -280,20 +285,20 @@ def test_hf_backbone_runs_the_converted_model(release):
 
 def test_train_and_merge_on_the_converted_checkpoint(release, tmp_path):
     conv = tmp_path / "conv"
-    assert main(["convert-openvla", str(release["src"]), "--out", str(conv)]) == 0
+    convert_openvla(release["src"], conv)
     data = make_synthetic_dataset(tmp_path / "data", 2, 12, SIZE)
     run, merged = tmp_path / "run", tmp_path / "merged"
-    assert main(["train", "--data", str(data), "--out", str(run), "--backbone", "hf", "--backbone.path", str(conv),
-                 "--backbone.lora-rank", "4", "--model.image_size", str(SIZE), "--model.max_text_len", "24",
-                 "--batch_size", "2", "--steps", "2", "--warmup", "1", "--lr", "1e-2", "--progress", "false",
-                 "--log_every", "1", "--eval_every", "100", "--ckpt_every", "2", "--threads", "2"]) == 0
+    backbone = BackboneConfig(name="hf", path=str(conv), lora_rank=4)
+    model = ModelConfig(image_size=SIZE, max_text_len=24, backbone=backbone)
+    train(TrainConfig(data=str(data), out=str(run), batch_size=2, steps=2, warmup=1, lr=1e-2, progress=False,
+                      log_every=1, eval_every=100, ckpt_every=2, threads=2, model=model))
     assert json.loads((run / "status.json").read_text())["step"] == 2
     policy = load_policy(run, device="cpu")
     ep = read_dataset(data)[0]
     obs = {k: v[5] for k, v in ep.obs.items()} | {"instruction": ep.instruction}
     a = policy.infer(obs)
     assert a["actions"].shape == (8, 7) and np.isfinite(a["actions"]).all()
-    assert main(["merge-lora", str(run), "--out", str(merged), "--device", "cpu"]) == 0
+    merge_run(MergeConfig(policy=str(run), out=str(merged), device="cpu"))
     assert (merged / "backbone" / "pivla_openvla.json").is_file()
     b = load_policy(merged, device="cpu").infer(obs)
     for k in a:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pivla.cli import main
-from pivla.data.format import read_dataset
+from pivla.data.datasets import read_dataset
 
 
 @pytest.fixture(scope="module")

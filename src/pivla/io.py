@@ -1,14 +1,17 @@
-"""Atomic file writes: everything pivla saves goes to a temporary name in the target folder and is renamed
-into place, so an interrupted write never leaves half a file and never clobbers the previous version."""
+"""File input and output below every other layer. Writes are atomic: everything pivla saves goes to a temporary
+name in the target folder and is renamed into place, so an interrupted write never leaves half a file and never
+clobbers the previous version."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 
 @contextlib.contextmanager
@@ -25,6 +28,29 @@ def atomic_path(path: str | Path) -> Iterator[str]:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically, synced to disk before the rename (a crash leaves the old file)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def atomic_write_json(path: str | Path, obj: Any) -> None:
+    """``obj`` as indented JSON with sorted keys (stable diffs between runs), atomically."""
+    atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
+
+
+def read_json(path: str | Path) -> Any:
+    """A JSON file, with an error naming the file when it is missing or corrupt."""
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: missing") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: corrupt JSON ({e})") from e
 
 
 @contextlib.contextmanager

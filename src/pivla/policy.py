@@ -1,53 +1,72 @@
-"""A trained CMS policy behind the smallest interface: ``infer(obs) -> dict``.
+"""A trained CMS policy behind the smallest interface: ``infer(obs) -> dict`` (the ``ChunkPolicy`` contract).
 
-``obs`` holds one time step under the dataset's observation key names plus ``instruction``. Inputs are
-normalised and outputs un-normalised here, outside the network, with the statistics saved in the run.
+``obs`` holds one time step under the dataset's observation key names plus ``instruction``. Inputs go
+through the same pipeline as the training data (``pivla.data.transforms.input_pipeline``); outputs through
+the steps below (Eq. 12 de-quantization, Eq. 13, head selection, un-normalization), outside the network, with
+the statistics saved in the run.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from pivla.control.math import DEFAULT_ETA, action_uncertainty
-from pivla.data.dataset import proprio_vector, resize_images
-from pivla.data.normalize import NormStats
+from pivla.control.contract import Calibration, PolicySpec
+from pivla.control.math import action_uncertainty, dequantize
+from pivla.data.normalize import ActionStats, NormStats
 from pivla.data.text import WordTokenizer, load_text_tokenizer
-from pivla.data.transforms import area_downsample, images_to_tensor
+from pivla.data.transforms import images_to_tensor, input_pipeline
 from pivla.model import encoder_runtime as er
-from pivla.model.backbone import ConvEncoder, centre
-from pivla.model.cms import CMSModel
+from pivla.model.backbone import ConvEncoder
+from pivla.model.cms import CMSModel, CMSOutput
+from pivla.model.device import select_device
+from pivla.model.onnx_encoder import ObservationEncoder
+from pivla.model.pixels import check_image, resize_images
 from pivla.training import checkpoint as ck
 
 log = logging.getLogger(__name__)
 
-
-@dataclass
-class Calibration:
-    """Executor thresholds calibrated on validation data (never on test episodes): AURD's, and the same
-    percentiles of U_act alone for AdaHorizon (None in files written before they existed)."""
-
-    tau_low: float
-    tau_high: float
-    v_thresh: float
-    eta: float = DEFAULT_ETA
-    source: str = ""
-    act_low: float | None = None  # P(tau_low_pct) of U_act: AdaHorizon extends below it
-    act_high: float | None = None  # P(tau_high_pct) of U_act: AdaHorizon replans above it
-    pred_baseline: str = "none"  # how U_pred was measured when calibrating; AURD uses the same by default
+__all__ = ["Calibration", "Policy", "load_policy"]
 
 
-def select_device(device: str = "auto") -> torch.device:
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+# -- output steps ----------------------------------------------------------------------------------------------
+def head_outputs(out: CMSOutput, bin_centers: torch.Tensor) -> dict[str, np.ndarray]:
+    """The model's heads as arrays: discrete probabilities, the continuous chunk clamped to the action range,
+    its Eq. 12 de-quantization (computed on the model's device), latents and values."""
+    probs = torch.softmax(out.logits.float(), dim=-1)
+    return {
+        "continuous_normalized": out.continuous.float().clamp(-1, 1).cpu().numpy(),
+        "dequantized": dequantize(probs, bin_centers).cpu().numpy(),
+        "discrete_probs": probs.cpu().numpy(),
+        "latents": out.latents.float().cpu().numpy(),
+        "values": out.values.float().cpu().numpy(),
+        "value_now": out.value_now.float().cpu().numpy(),
+    }
+
+
+def select_heads(heads: Mapping[str, np.ndarray], action_head: str, gripper_head: str, both_heads: bool) -> dict[str, np.ndarray]:
+    """The executed chunk ``actions_normalized``: the arm from ``action_head``, the gripper from ``gripper_head``;
+    and ``u_act`` (Eq. 13), zero for a policy trained with one head."""
+    cont, deq = heads["continuous_normalized"], heads["dequantized"]
+    primary = (cont if action_head == "continuous" else deq).copy()
+    primary[..., -1] = (cont if gripper_head == "continuous" else deq)[..., -1]
+    u_act = action_uncertainty(cont, deq) if both_heads else np.zeros(cont.shape[:2])
+    return {**heads, "actions_normalized": primary, "u_act": u_act}
+
+
+def unnormalize_actions(outputs: Mapping[str, np.ndarray], stats: ActionStats) -> dict[str, np.ndarray]:
+    """Physical ``actions`` from ``actions_normalized`` with the training set's statistics."""
+    return {**outputs, "actions": stats.unnormalize(outputs["actions_normalized"])}
 
 
 class Policy:
+    """A local CMS policy (the ``ChunkPolicy`` and ``BatchPolicy`` contracts)."""
+
     def __init__(self, model: CMSModel, stats: NormStats, text: WordTokenizer, run_dir: Path | None = None,
                  calibration: Calibration | None = None, device: torch.device | None = None,
                  action_head: str = "continuous", both_heads: bool = True, gripper_head: str | None = None,
@@ -63,8 +82,12 @@ class Policy:
         self.run_dir = run_dir
         self.calibration = calibration
         self.device = device or next(model.parameters()).device
-        self.bin_centers = model.bin_centers.cpu().numpy()
-        self.chunk, self.horizon = self.cfg.chunk, self.cfg.horizon
+        self.spec = PolicySpec(
+            cameras=tuple(self.cfg.cameras), image_size=self.cfg.image_size,
+            proprio=_proprio_lengths(stats, self.cfg.proprio_keys),
+            chunk=self.cfg.chunk, horizon=self.cfg.horizon, action_dim=self.cfg.action_dim,
+            latent_dim=model.latent_dim, target_cameras=model.target.cameras)
+        self._inputs = input_pipeline(self.cfg, stats.proprio, text)
         # which head's actions are executed: the continuous one, unless the run trained only the discrete one
         self.action_head = action_head
         # U_act (Eq. 13) is the disagreement of two trained heads; a one-head ablation has none, and comparing
@@ -72,9 +95,8 @@ class Policy:
         self.both_heads = both_heads
         # The gripper (the last action dimension, open -1 / closed +1) is a binary decision taken at a few
         # moments of an episode. The cross-entropy of the discrete head learns those moments; the SmoothL1 of
-        # the continuous head can miss them (a policy whose discrete head gave P(open) = 0.95 kept its
-        # continuous gripper at +1, set the object down and never let go; docs/results.md, session 6).
-        # So with two trained heads the gripper follows Eq. 12 and the arm the continuous head.
+        # the continuous head can miss them (docs/experiments.md#gripper-from-the-discrete-head). So with two
+        # trained heads the gripper follows Eq. 12 and the arm the continuous head.
         self.gripper_head = gripper_head or ("discrete" if both_heads else action_head)
         # AURD encodes every new observation: on a CPU the default target encoder runs on ONNX Runtime
         # ("auto"), where one encoding takes 0.5-0.7x as long (pivla.model.encoder_runtime); "torch" forces PyTorch
@@ -86,7 +108,7 @@ class Policy:
         is ``encoder_runtime``."""
         if runtime not in er.RUNTIMES:
             raise ValueError(f"encoder_runtime must be one of {er.RUNTIMES}, got {runtime!r}")
-        self._onnx_encoder, self.encoder_runtime = None, "torch"
+        self._onnx_encoder, self._observation_encoder, self.encoder_runtime = None, None, "torch"
         if runtime == "torch":
             return
         target = self.model.target
@@ -107,96 +129,63 @@ class Policy:
                 raise RuntimeError(f"encoder_runtime 'onnx': {reason}")
             log.debug("target encoder on PyTorch: %s", reason)
             return
+        self._observation_encoder = ObservationEncoder(self._onnx_encoder, self.cfg.cameras[: target.cameras],
+                                                       self.cfg.image_size, target.downsample)
         self.encoder_runtime = "onnx"
 
-    # -- transforms ------------------------------------------------------------------------------------
-    def _check_obs(self, obs: dict) -> None:
-        for key in (*self.cfg.cameras, *self.cfg.proprio_keys, "instruction"):
-            if key not in obs:
-                raise KeyError(f"observation is missing {key!r} (policy needs {list(self.cfg.cameras)} + "
-                               f"{list(self.cfg.proprio_keys)} + 'instruction')")
-        for key in self.cfg.proprio_keys:
-            if not np.all(np.isfinite(np.asarray(obs[key], dtype=np.float64))):
-                raise ValueError(f"observation {key!r} contains NaN or inf")
-
-    def _image(self, obs: dict, camera: str) -> np.ndarray:
-        """(S, S, 3) uint8 picture of one camera, resized to the model's."""
-        im = np.asarray(obs[camera])
-        if im.ndim != 3 or im.shape[-1] != 3 or im.dtype != np.uint8:
-            raise ValueError(f"observation {camera!r} must be an HxWx3 uint8 image, got {im.shape} {im.dtype}")
-        return resize_images(im, self.cfg.image_size)
-
-    def _images(self, obs_list: list[dict], cameras: int | None = None) -> np.ndarray:
-        """(N, n_cam, S, S, 3) uint8 of the first ``cameras`` cameras (default all), resized to the model's."""
-        return np.stack([np.stack([self._image(obs, c) for c in self.cfg.cameras[:cameras]]) for obs in obs_list])
-
-    def model_inputs(self, obs_list: list[dict]) -> dict[str, torch.Tensor]:
-        for obs in obs_list:
-            self._check_obs(obs)
-        ids, masks = zip(*(self.text.encode(str(o["instruction"])) for o in obs_list))
-        proprio = np.stack([self.stats.proprio.normalize(proprio_vector(o, self.cfg.proprio_keys)) for o in obs_list])
-        return {
-            "images": images_to_tensor(self._images(obs_list), self.device),
-            "text_ids": torch.from_numpy(np.stack(ids)).to(self.device),
-            "text_mask": torch.from_numpy(np.stack(masks)).to(self.device),
-            "proprio": torch.from_numpy(proprio.astype(np.float32)).to(self.device),
-        }
+    @property
+    def target_graph(self) -> bytes | None:
+        """The target encoder as the ONNX graph ``encode`` runs (None on PyTorch): what a server hands a
+        client so that AURD's per-step encoding runs next to the robot."""
+        return self._onnx_encoder.model_bytes if self._onnx_encoder is not None else None
 
     # -- inference -------------------------------------------------------------------------------------
-    @torch.inference_mode()
-    def infer_batch(self, obs_list: list[dict]) -> dict[str, np.ndarray]:
-        """Batched ``infer``: every output gains a leading batch dimension."""
-        out = self.model(self.model_inputs(obs_list))
-        probs = torch.softmax(out.logits.float(), dim=-1)
-        cont = out.continuous.float().clamp(-1, 1).cpu().numpy()
-        deq = (probs @ self.model.bin_centers).cpu().numpy()  # Eq. 12
-        primary = (cont if self.action_head == "continuous" else deq).copy()
-        primary[..., -1] = (cont if self.gripper_head == "continuous" else deq)[..., -1]
+    def model_inputs(self, obs_list: Sequence[Mapping[str, Any]]) -> dict[str, torch.Tensor]:
+        """Observations through the input pipeline, batched as tensors on the policy's device."""
+        samples = [self._inputs(obs) for obs in obs_list]
         return {
-            "actions": self.stats.action.unnormalize(primary),
-            "actions_normalized": primary,
-            "continuous_normalized": cont,
-            "dequantized": deq,
-            "u_act": action_uncertainty(cont, deq) if self.both_heads else np.zeros(cont.shape[:2]),
-            "discrete_probs": probs.cpu().numpy(),
-            "latents": out.latents.float().cpu().numpy(),
-            "values": out.values.float().cpu().numpy(),
-            "value_now": out.value_now.float().cpu().numpy(),
+            "images": images_to_tensor(np.stack([s["images"] for s in samples]), self.device),
+            "text_ids": torch.from_numpy(np.stack([s["text_ids"] for s in samples])).to(self.device),
+            "text_mask": torch.from_numpy(np.stack([s["text_mask"] for s in samples])).to(self.device),
+            "proprio": torch.from_numpy(np.stack([s["proprio"] for s in samples])).to(self.device),
         }
 
-    def infer(self, obs: dict) -> dict[str, np.ndarray]:
+    @torch.inference_mode()
+    def infer_batch(self, obs_list: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
+        """Batched ``infer``: every output gains a leading batch dimension."""
+        heads = head_outputs(self.model(self.model_inputs(obs_list)), self.model.bin_centers)
+        return unnormalize_actions(select_heads(heads, self.action_head, self.gripper_head, self.both_heads),
+                                   self.stats.action)
+
+    def infer(self, obs: Mapping[str, Any]) -> dict[str, np.ndarray]:
         """One observation -> actions (K,7) un-normalised from the primary head (the gripper from
-        ``gripper_head``), actions_normalized (K,7),
-        continuous_normalized and dequantized (K,7) (both heads, normalized; Eq. 12 for the latter), u_act (K,)
-        (Eq. 13; zero for a policy trained with one head),
-        discrete_probs (K,7,256), latents (K,d_z) predicted next-observation latents, values (H,),
-        value_now ()."""
+        ``gripper_head``), actions_normalized (K,7), continuous_normalized and dequantized (K,7) (both heads,
+        normalized; Eq. 12 for the latter), u_act (K,) (Eq. 13; zero for a policy trained with one head),
+        discrete_probs (K,7,256), latents (K,d_z) predicted next-observation latents, values (H,), value_now ()."""
         return {k: v[0] for k, v in self.infer_batch([obs]).items()}
 
-    def encode_batch(self, obs_list: list[dict]) -> np.ndarray:
+    def _target_images(self, obs_list: Sequence[Mapping[str, Any]]) -> np.ndarray:
+        """(N, n_target_cameras, S, S, 3) uint8: the leading cameras the target encoder reads, at the model's side."""
+        cams = self.cfg.cameras[: self.model.target.cameras]
+        return np.stack([np.stack([resize_images(check_image(obs[c], c), self.cfg.image_size) for c in cams])
+                         for obs in obs_list])
+
+    def encode_batch(self, obs_list: Sequence[Mapping[str, Any]]) -> np.ndarray:
         """Enc(o) for several observations: (N, d_z) target-encoder latents in the units of ``latents``."""
         if self._onnx_encoder is not None and len(obs_list) == 1:  # AURD's case; batches (calibration) stay in torch
             return self.encode(obs_list[0])[None]
         return self._encode_torch(obs_list)
 
     @torch.inference_mode()
-    def _encode_torch(self, obs_list: list[dict]) -> np.ndarray:
-        target = self.model.target
-        return target(images_to_tensor(self._images(obs_list, target.cameras), self.device)).float().cpu().numpy()
+    def _encode_torch(self, obs_list: Sequence[Mapping[str, Any]]) -> np.ndarray:
+        return self.model.target(images_to_tensor(self._target_images(obs_list), self.device)).float().cpu().numpy()
 
-    def encode(self, obs: dict) -> np.ndarray:
-        """Enc(o): the target encoder's latent of one observation (AURD's observed latent).
-
-        On ONNX Runtime each camera's picture is area-averaged and centred straight into the graph's bound
-        input: AURD encodes every new observation, and the copies and temporaries of the batch path cost
-        as much again as the graph itself (docs/results.md, session 19)."""
-        if self._onnx_encoder is None:
+    def encode(self, obs: Mapping[str, Any]) -> np.ndarray:
+        """Enc(o): the target encoder's latent of one observation (AURD's observed latent), on ONNX Runtime
+        when it can (``pivla.model.onnx_encoder.ObservationEncoder``), else in PyTorch."""
+        if self._observation_encoder is None:
             return self._encode_torch([obs])[0]
-        target, images = self.model.target, self._onnx_encoder.inputs[0]
-        for camera, dst in zip(self.cfg.cameras[: target.cameras], images):
-            area_downsample(self._image(obs, camera), target.downsample, out=dst)
-        centre(images, inplace=True)
-        return self._onnx_encoder.run()[0]
+        return self._observation_encoder.encode(obs)
 
     def to_actions(self, normalized: np.ndarray) -> np.ndarray:
         return self.stats.action.unnormalize(normalized)
@@ -224,3 +213,14 @@ def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0, gri
     both = cfg.loss.use_continuous and cfg.loss.use_discrete
     return Policy(model.to(dev), stats, text, run_dir, calib, dev, action_head=head, both_heads=both,
                   gripper_head=gripper_head, encoder_runtime=encoder_runtime)
+
+
+
+def _proprio_lengths(stats: NormStats, keys: Sequence[str]) -> tuple[tuple[str, int], ...]:
+    """Each proprio key with its length, as the training data had them (-1: unknown, in runs written before
+    the layout was stored, except for a single key)."""
+    if stats.proprio_layout is not None:
+        return tuple((k, n) for k, n in stats.proprio_layout)
+    if len(keys) == 1:
+        return ((keys[0], len(stats.proprio.mean)),)
+    return tuple((k, -1) for k in keys)

@@ -1,46 +1,80 @@
-"""The ``pivla`` command line. Each subcommand lives in its own module exposing ``register(subparsers)``;
-modules are imported only when their command is used, so ``pivla robot ...`` never imports torch models
-and ``pivla train`` never imports MuJoCo."""
+"""The ``pivla`` command line, generated from the components' typed configs by tyro.
+
+Each command is a config dataclass (its fields and their docstrings are the flags and their help) and a
+function taking it. Commands are looked up by name and imported only when used, so ``pivla robot ...``
+never imports torch and ``pivla --help`` answers at once.
+"""
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import sys
 
-# command -> (module, one-line help). The module's register() adds the parser and sets func.
-COMMANDS: dict[str, tuple[str, str]] = {
-    "train": ("pivla.cli.train", "train a CMS policy on a dataset directory"),
-    "info": ("pivla.cli.train", "print a run's config, parameter counts and training status"),
-    "merge-lora": ("pivla.cli.merge", "merge an hf run's LoRA adapters into its backbone for deployment"),
-    "convert-openvla": ("pivla.cli.convert", "convert OpenVLA's released checkpoint for --backbone hf (no timm)"),
-    "bench": ("pivla.cli.bench", "benchmarks: infer, sim, control"),
-    "collect": ("pivla.cli.collect", "collect expert demonstrations or policy rollouts into a dataset"),
-    "export-video": ("pivla.cli.collect", "write MP4 previews of a dataset's episodes"),
-    "eval": ("pivla.cli.evaluate", "evaluate a policy with an executor on a task suite"),
-    "calibrate": ("pivla.cli.evaluate", "calibrate AURD thresholds on validation data"),
-    "ablate": ("pivla.cli.evaluate", "run the paper's ablation tables on the simulator"),
-    "report": ("pivla.cli.evaluate", "write report.md with plots for an evaluation directory"),
-    "demo": ("pivla.cli.demo", "the main job: collect, train, calibrate, evaluate, report"),
-    "robot": ("pivla.cli.robot", "the real arm: firmware board, calibration, teleop, recording, control"),
+from pivla import __version__
+from pivla.cli.app import Command, Group, run
+
+WORKFLOW = """pivla {version}: vision-language-action policies that predict their own future, notice when they are
+going wrong, and replan (PI-VLA: CMS model, unified IL + RL + state-prediction loss, AURD).
+
+The workflow, on the simulated twin (every command has --help):
+  pivla collect --suite pick_place --episodes 90 --out data/pp       expert demonstrations
+  pivla train --data data/pp --out runs/pp                           the validated recipe by default
+  pivla calibrate --policy runs/pp --data data/pp-valroll            AURD's thresholds, validation data only
+  pivla eval --policy runs/pp --out ev/aurd --executor aurd          success with 95% CIs, traces
+  pivla report --dir ev                                              tables, paired comparisons, plots
+or all of it at once: pivla demo --out runs/demo
+"""
+
+COMMANDS: dict[str, Command | Group] = {
+    "demo": Command("pivla.cli.experiments", "demo", "the main job on the twin: collect, train, calibrate, evaluate, report"),
+    "collect": Command("pivla.cli.data", "collect", "expert demonstrations, or policy rollouts with --policy"),
+    "train": Command("pivla.cli.train", "train", "train a CMS policy (the validated recipe unless told otherwise)"),
+    "calibrate": Command("pivla.cli.evaluate", "calibrate", "AURD's thresholds from validation data"),
+    "eval": Command("pivla.cli.evaluate", "evaluate", "evaluate a policy with an executor on a task suite"),
+    "report": Command("pivla.cli.evaluate", "report", "report.md with tables, paired statistics and plots"),
+    "info": Command("pivla.cli.train", "info", "a run's config, parameter counts, training status, calibration"),
+    "ablate": Command("pivla.cli.experiments", "ablate", "the paper's ablation tables (4-7) on the twin"),
+    "serve": Command("pivla.cli.serve", "serve", "serve a policy over a websocket (openpi's protocol)"),
+    "libero": Group("LIBERO on the official protocol", {
+        "run": Command("pivla.cli.experiments", "libero_run",
+                       "one suite end to end: collect, train, calibrate, evaluate on the official init states"),
+    }),
+    "export-video": Command("pivla.cli.data", "export_video", "MP4 previews of a dataset's episodes"),
+    "data": Group("datasets", {
+        "convert": Command("pivla.cli.data", "convert", "convert a dataset between pivla's HDF5 and LeRobot v3"),
+    }),
+    "merge-lora": Command("pivla.cli.train", "merge_lora", "merge an hf run's LoRA adapters into its backbone"),
+    "convert-openvla": Command("pivla.cli.train", "convert_openvla",
+                               "convert OpenVLA's released checkpoint for the hf backbone (no timm)"),
+    "bench": Group("speed on this machine, medians after warm-up", {
+        "infer": Command("pivla.cli.bench", "infer", "batch-1 forward pass of a policy"),
+        "train": Command("pivla.cli.bench", "train", "training samples/s on synthetic data"),
+        "sim": Command("pivla.cli.bench", "sim", "environment steps/s with cameras"),
+        "control": Command("pivla.cli.bench", "control", "AURD's per-step overhead against fixed horizon"),
+        "hf": Command("pivla.cli.bench", "hf", "CPU cost of the hf backbone stack"),
+        "robot": Command("pivla.cli.bench", "robot", "serial round trips to the arm's board"),
+        "serve": Command("pivla.cli.bench", "serve", "round-trip latency of a served policy vs in-process"),
+    }),
+    "robot": Group("the real arm (or its twin with --sim)", {
+        "simboard": Command("pivla.cli.robot", "simboard", "run the firmware on a simulated Uno; prints its port"),
+        "check": Command("pivla.cli.robot", "check", "ping the board: version, state, config, limits"),
+        "calibrate-servos": Command("pivla.cli.robot", "calibrate_servos",
+                                    "write the arm's servo calibration and program its limits into the board"),
+        "home": Command("pivla.cli.robot", "home", "move to the home pose"),
+        "teleop": Command("pivla.cli.robot", "teleop", "keyboard teleoperation in the terminal"),
+        "record": Command("pivla.cli.robot", "record", "teleoperate and record demonstrations"),
+        "run": Command("pivla.cli.robot", "run_policy", "run a policy on the arm in closed loop"),
+        "repeatability": Command("pivla.cli.robot", "repeatability", "move to targets repeatedly, report the scatter"),
+        "autocollect": Command("pivla.cli.robot", "autocollect", "camera-only scripted collection (twin)"),
+    }),
 }
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(prog="pivla", description=__doc__.split("\n")[0])
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (_, help_) in COMMANDS.items():
-        sub.add_parser(name, help=help_, add_help=False)
-    if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
-        parser.parse_args(argv or ["--help"])
-        return 2
-    command = argv[0]
-    module = importlib.import_module(COMMANDS[command][0])
-    cmd_parser = argparse.ArgumentParser(prog=f"pivla {command}", description=COMMANDS[command][1])
-    module.register(command, cmd_parser)
-    args = cmd_parser.parse_args(argv[1:])
-    return int(args.func(args) or 0)
+    if argv[:1] == ["--version"]:
+        print(f"pivla {__version__}")
+        return 0
+    return run(COMMANDS, argv, prog="pivla", intro=WORKFLOW.format(version=__version__))
 
 
 if __name__ == "__main__":

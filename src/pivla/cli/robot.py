@@ -1,16 +1,26 @@
 """``pivla robot ...``: the real arm (or its simulated twin with ``--sim``) from the terminal.
 
-Subcommands: simboard, check, calibrate, home, teleop, record, run, repeatability, autocollect.
+Subcommands: simboard, check, calibrate-servos, home, teleop, record, run, repeatability, autocollect.
 docs/robot.md walks through them in the order a maker uses them.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
+import select
 import sys
+import termios
 import time
+import tty
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import tyro
+
+from pivla.control.executors import AURDConfig, ExecutorConfig
 
 log = logging.getLogger("pivla.robot")
 
@@ -19,62 +29,98 @@ TELEOP_KEYS = {"w": (0, 1), "s": (0, -1), "a": (1, 1), "d": (1, -1), "r": (2, 1)
 TELEOP_HELP = "w/s: +x/-x  a/d: +y/-y  r/f: up/down  q/e: yaw  space: gripper  n: episode ok  b: episode failed  x: quit"
 
 
-def _robot_args(p: argparse.ArgumentParser, cameras: bool = False) -> None:
-    p.add_argument("--port", help="serial port of the arm's Uno (e.g. /dev/ttyACM0)")
-    p.add_argument("--sim", action="store_true", help="use the simulated twin instead of a serial arm")
-    p.add_argument("--calibration", default="arm_calibration.json", help="per-arm calibration file (JSON)")
-    p.add_argument("--suite", default="pick_place", help="twin suite (with --sim)")
-    p.add_argument("--task", default="0", help="twin task index or name (with --sim)")
-    p.add_argument("--seed", type=int, default=0)
-    if cameras:
-        p.add_argument("--camera", default="0", help="OpenCV camera index or URL for agentview_rgb")
-        p.add_argument("--wrist-camera", default=None, help="OpenCV camera for eye_in_hand_rgb (optional)")
-        p.add_argument("--image-size", type=int, default=96)
+@dataclass
+class ArmConfig:
+    """Which arm: a serial one, or the simulated twin."""
+
+    port: str | None = None
+    """Serial port of the arm's Uno (e.g. /dev/ttyACM0)."""
+    sim: bool = False
+    """Use the simulated twin instead of a serial arm."""
+    calibration: str = "arm_calibration.json"
+    """Per-arm servo calibration file (JSON)."""
+    suite: str = "pick_place"
+    """Twin suite (with --sim)."""
+    task: str = "0"
+    """Twin task index or name (with --sim)."""
+    seed: int = 0
+    """Seed of the twin's scenes."""
 
 
-def make_robot(args):
+@dataclass
+class CameraConfig:
+    """The cameras the policy reads."""
+
+    camera: str = "0"
+    """OpenCV camera index or URL for agentview_rgb."""
+    wrist_camera: str | None = None
+    """OpenCV camera for eye_in_hand_rgb (optional)."""
+    image_size: int = 80
+    """Picture side in px (the policy's)."""
+
+
+def make_robot(arm: ArmConfig):
     """A SerialRobot (``--port``) or the twin (``--sim``)."""
-    if args.sim:
+    if arm.sim:
         from pivla.robot.sim import SimRobot
 
-        task = int(args.task) if str(args.task).isdigit() else args.task
-        return SimRobot(args.suite, task, seed=args.seed)
-    if not args.port:
+        task = int(arm.task) if str(arm.task).isdigit() else arm.task
+        return SimRobot(arm.suite, task, seed=arm.seed)
+    if not arm.port:
         raise SystemExit("give --port PORT for the serial arm, or --sim for the twin")
     from pivla.robot.calibration import ArmCalibration
     from pivla.robot.link import Board
     from pivla.robot.robot import SerialRobot
     from pivla.robot.safety import SafetyLayer
 
-    calib = ArmCalibration.load(args.calibration)
-    return SerialRobot(Board.open(args.port), calib, SafetyLayer(calib))
+    calib = ArmCalibration.load(arm.calibration)
+    return SerialRobot(Board.open(arm.port), calib, SafetyLayer(calib))
 
 
-def make_cameras(args, robot) -> dict:
-    if args.sim:
+def make_cameras(arm: ArmConfig, cams: CameraConfig, robot) -> dict:
+    if arm.sim:
         from pivla.robot.sim import SimCamera
 
-        return {k: SimCamera(robot, k, args.image_size) for k in ("agentview_rgb", "eye_in_hand_rgb")}
+        return {k: SimCamera(robot, k, cams.image_size) for k in ("agentview_rgb", "eye_in_hand_rgb")}
     from pivla.robot.robot import OpenCVCamera
 
     dev = lambda s: int(s) if str(s).isdigit() else s  # noqa: E731
-    cams = {"agentview_rgb": OpenCVCamera(dev(args.camera), args.image_size)}
-    if args.wrist_camera is not None:
-        cams["eye_in_hand_rgb"] = OpenCVCamera(dev(args.wrist_camera), args.image_size)
-    return cams
+    out = {"agentview_rgb": OpenCVCamera(dev(cams.camera), cams.image_size)}
+    if cams.wrist_camera is not None:
+        out["eye_in_hand_rgb"] = OpenCVCamera(dev(cams.wrist_camera), cams.image_size)
+    return out
+
+
+@dataclass
+class ArmCommand:
+    """An arm (serial or twin)."""
+
+    arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
 
 
 # ------------------------------------------------------------------------------------------ commands
-def cmd_simboard(args) -> int:
+@dataclass
+class SimboardConfig:
+    """The firmware on a simulated ATmega328P (simavr); prints its serial port first."""
+
+    firmware: str | None = None
+    """Firmware ELF (default: build firmware/ and use it)."""
+    realtime: float = 1.0
+    """Simulation speed against real time (0: unthrottled)."""
+    pulses: bool = False
+    """Also print the measured servo pulse widths."""
+
+
+def simboard(cfg: SimboardConfig) -> int:
     from pivla.robot.simboard import SimBoard
 
-    with SimBoard(args.firmware, realtime_factor=args.realtime) as sb:
+    with SimBoard(cfg.firmware, realtime_factor=cfg.realtime) as sb:
         print(sb.port, flush=True)
         try:
             last = None
             while sb.alive():
                 time.sleep(0.2)
-                if args.pulses and sb.pulses != last:
+                if cfg.pulses and sb.pulses != last:
                     last = sb.pulses
                     print("pulses_us " + " ".join(f"{w:.1f}" for w in last), flush=True)
         except KeyboardInterrupt:
@@ -82,40 +128,58 @@ def cmd_simboard(args) -> int:
     return 0
 
 
-def cmd_check(args) -> int:
-    from pivla.robot.bench import measure
+@dataclass
+class CheckConfig:
+    """A board's identity, state, configuration and limits."""
+
+    port: str
+    """Serial port of the board."""
+    bench: int = 0
+    """Also time this many round trips."""
+
+
+def check(cfg: CheckConfig) -> int:
+    from pivla.bench.robot import measure
     from pivla.robot.link import Board
 
-    board = Board.open(args.port)
+    board = Board.open(cfg.port)
     try:
         report = {"info": board.ping().__dict__, "state": board.state().__dict__, "config": board.config().__dict__,
                   "limits": [board.limits(ch).__dict__ for ch in range(7)]}
-        if args.bench:
-            report["bench"] = measure(board, args.bench)
+        if cfg.bench:
+            report["bench"] = measure(board, cfg.bench)
     finally:
         board.close()
     print(json.dumps(report, default=str, indent=2))
     return 0
 
 
-def cmd_calibrate(args) -> int:
-    """Creates or updates the calibration file and programs its limits and home pose into the board."""
-    from pathlib import Path
+@dataclass
+class CalibrateServosCommand:
+    """Create or update the arm's servo calibration file and program its limits and home pose into the board."""
 
+    arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
+    jog: bool = False
+    """Interactively jog each joint to its zero."""
+
+
+def calibrate_servos(cmd: CalibrateServosCommand) -> int:
     from pivla.robot.calibration import ArmCalibration
 
-    path = Path(args.calibration)
+    path = Path(cmd.arm.calibration)
     calib = ArmCalibration.load(path) if path.exists() else ArmCalibration.nominal(path.stem)
-    if args.sim:
+    if cmd.arm.sim:
         calib.save(path)
         print(f"wrote {path} (the twin uses the nominal calibration)")
         return 0
+    if not cmd.arm.port:
+        raise SystemExit("give --port PORT for the serial arm, or --sim for the twin")
     from pivla.robot.link import Board
     from pivla.robot.robot import SerialRobot
     from pivla.robot.safety import SafetyLayer
 
-    board = Board.open(args.port)
-    if args.jog:
+    board = Board.open(cmd.arm.port)
+    if cmd.jog:
         calib = jog_zero_offsets(board, calib, _keys())
     robot = SerialRobot(board, calib, SafetyLayer(calib), program_limits=True)
     for lim in calib.board_limits(robot.home_q):
@@ -135,7 +199,7 @@ def jog_zero_offsets(board, calib, keys):
     Keys: '+'/'-' 10 us, ']'/'[' 50 us, 'r' reverse direction, Enter accept, 's' skip. Moves stay inside
     the board's current limits (the firmware refuses anything else).
     """
-    from pivla.envs.tabletop import arm
+    from pivla.envs import arm
 
     st = board.state()
     pulses = list(st.targets_us)
@@ -163,10 +227,6 @@ def jog_zero_offsets(board, calib, keys):
 
 def _keys():
     """Single key presses from the terminal (raw mode), '' when none arrived within 0.1 s."""
-    import select
-    import termios
-    import tty
-
     if not sys.stdin.isatty():
         raise SystemExit("this command needs an interactive terminal")
     fd = sys.stdin.fileno()
@@ -180,8 +240,8 @@ def _keys():
         termios.tcsetattr(fd, termios.TCSADRAIN, old)
 
 
-def cmd_home(args) -> int:
-    robot = make_robot(args)
+def home(cmd: ArmCommand) -> int:
+    robot = make_robot(cmd.arm)
     try:
         st = robot.home()
         print(f"home: q={st.q.round(3).tolist()} ee={st.ee_pos.round(3).tolist()}")
@@ -192,8 +252,6 @@ def cmd_home(args) -> int:
 
 def teleop_actions(keys, gripper: float = -1.0):
     """Maps key presses to (action, event): 7-D EE-delta actions at half speed, events 'ok'/'fail'/'quit'."""
-    import numpy as np
-
     for key in keys:
         a = np.zeros(7)
         event = None
@@ -212,15 +270,25 @@ def teleop_actions(keys, gripper: float = -1.0):
         yield a, event
 
 
-def _teleop_loop(args, record_to=None) -> int:
-    import numpy as np
+@dataclass
+class RecordCommand:
+    """Teleoperate and record demonstrations (LIBERO layout)."""
 
+    out: str
+    """Dataset directory."""
+    instruction: str
+    """The task's instruction, stored with every episode."""
+    arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
+    cameras: Annotated[CameraConfig, tyro.conf.arg(name="")] = field(default_factory=CameraConfig)
+
+
+def _teleop_loop(arm: ArmConfig, record: RecordCommand | None = None) -> int:
     from pivla.robot.env import RobotEnv, RobotEnvConfig
 
-    robot = make_robot(args)
-    cams = make_cameras(args, robot) if record_to is not None else {}
-    instruction = getattr(args, "instruction", "") or ""
-    env = RobotEnv(robot, cams, instruction, RobotEnvConfig(realtime=not args.sim, max_steps=10**9))
+    robot = make_robot(arm)
+    cams = make_cameras(arm, record.cameras, robot) if record is not None else {}
+    instruction = record.instruction if record is not None else ""
+    env = RobotEnv(robot, cams, instruction, RobotEnvConfig(realtime=not arm.sim, max_steps=10**9))
     episodes = []
     print(TELEOP_HELP, flush=True)
     try:
@@ -230,31 +298,30 @@ def _teleop_loop(args, record_to=None) -> int:
             if event == "quit":
                 break
             if event in ("ok", "fail"):
-                if record_to is not None and steps:
+                if record is not None and steps:
                     episodes.append(_episode(steps, instruction, event == "ok"))
                     print(f"episode {len(episodes)}: {len(steps)} steps, success={event == 'ok'}", flush=True)
                 steps = []
                 obs, _ = env.reset()
                 continue
             nxt, *_ = env.step(action)
-            if record_to is not None:
+            if record is not None:
                 steps.append((obs, action))
             obs = nxt
     finally:
         robot.stop()
         env.close()
         robot.close()
-    if record_to is not None and episodes:
+    if record is not None and episodes:
         from pivla.data.format import write_episodes
 
-        path = write_episodes(record_to, episodes, env_meta={"env": "real_arm" if not args.sim else "tabletop_twin"})
+        target = Path(record.out) / f"{time.strftime('%Y%m%d_%H%M%S')}.hdf5"
+        path = write_episodes(target, episodes, env_meta={"env": "real_arm" if not arm.sim else "tabletop_twin"})
         print(f"wrote {len(episodes)} episodes to {path}")
     return 0
 
 
 def _episode(steps, instruction: str, success: bool):
-    import numpy as np
-
     from pivla.data.format import Episode
 
     keys = [k for k in steps[0][0] if k != "instruction"]
@@ -263,34 +330,48 @@ def _episode(steps, instruction: str, success: bool):
                    source="teleop")
 
 
-def cmd_teleop(args) -> int:
-    return _teleop_loop(args)
+def teleop(cmd: ArmCommand) -> int:
+    return _teleop_loop(cmd.arm)
 
 
-def cmd_record(args) -> int:
-    from pathlib import Path
-
-    out = Path(args.out)
-    return _teleop_loop(args, record_to=out / f"{time.strftime('%Y%m%d_%H%M%S')}.hdf5")
+def record(cmd: RecordCommand) -> int:
+    return _teleop_loop(cmd.arm, cmd)
 
 
-def cmd_run(args) -> int:
-    """The closed loop on the arm: a policy run and an executor from pivla.control."""
-    try:
-        from pivla import load_policy
-        from pivla.control import make_executor, run_episode
-    except ImportError as exc:
-        raise SystemExit(f"pivla robot run needs pivla.control (make_executor, run_episode) and load_policy: {exc}")
+@dataclass
+class RunCommand:
+    """A policy (local run or ws://HOST:PORT) and an executor drive the arm in closed loop; every command is
+    checked against the arm's limits before it is sent."""
+
+    policy: str
+    """Run directory, or ws://HOST:PORT of a served policy."""
+    instruction: str
+    """What to do."""
+    executor: ExecutorConfig = field(default_factory=AURDConfig)
+    """How chunks become actions: --executor aurd | fixed | ensemble | adahorizon, then its options."""
+    episodes: int = 1
+    """Episodes to run."""
+    max_steps: int = 300
+    """Step limit per episode."""
+    api_key: str | None = None
+    """API key of a served policy."""
+    arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
+    cameras: Annotated[CameraConfig, tyro.conf.arg(name="")] = field(default_factory=CameraConfig)
+
+
+def run_policy(cmd: RunCommand) -> int:
+    from pivla.control import make_executor, run_episode
     from pivla.robot.env import RobotEnv, RobotEnvConfig
+    from pivla.serving.client import open_policy
 
-    robot = make_robot(args)
-    env = RobotEnv(robot, make_cameras(args, robot), args.instruction,
-                   RobotEnvConfig(realtime=not args.sim, max_steps=args.max_steps))
-    policy = load_policy(args.policy)
+    robot = make_robot(cmd.arm)
+    env = RobotEnv(robot, make_cameras(cmd.arm, cmd.cameras, robot), cmd.instruction,
+                   RobotEnvConfig(realtime=not cmd.arm.sim, max_steps=cmd.max_steps))
+    policy = open_policy(cmd.policy, api_key=cmd.api_key)
     results = []
     try:
-        for ep in range(args.episodes):
-            results.append(run_episode(env, policy, make_executor(args.executor), seed=args.seed + ep).summary())
+        for ep in range(cmd.episodes):
+            results.append(run_episode(env, policy, make_executor(cmd.executor), seed=cmd.arm.seed + ep).summary())
             log.info("episode %d: %s", ep, results[-1])
     finally:
         robot.stop()
@@ -300,91 +381,53 @@ def cmd_run(args) -> int:
     return 0
 
 
-def cmd_repeatability(args) -> int:
+@dataclass
+class RepeatabilityCommand:
+    """Move to targets repeatedly and report the scatter of the reached positions (mm)."""
+
+    targets: int = 5
+    """Targets in the workspace."""
+    repeats: int = 10
+    """Visits of each target."""
+    arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
+
+
+def repeatability(cmd: RepeatabilityCommand) -> int:
     from pivla.robot.repeatability import run_repeatability
 
-    robot = make_robot(args)
+    robot = make_robot(cmd.arm)
     try:
-        report = run_repeatability(robot, args.repeats, args.targets, seed=args.seed)
+        report = run_repeatability(robot, cmd.repeats, cmd.targets, seed=cmd.arm.seed)
     finally:
         robot.close()
     print(json.dumps(report, indent=2))
     return 0
 
 
-def cmd_autocollect(args) -> int:
-    if not args.sim:
+@dataclass
+class AutocollectCommand:
+    """Camera-only scripted pick-and-place collection on the twin."""
+
+    out: str
+    """Dataset directory."""
+    attempts: int = 50
+    """Pick-and-place attempts."""
+    image_size: int = 80
+    """Picture side in px."""
+    verbose: bool = False
+    """Also print every attempt."""
+    arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
+
+
+def autocollect(cmd: AutocollectCommand) -> int:
+    if not cmd.arm.sim:
         raise SystemExit("autocollect runs on the twin (--sim); on the real arm use the Collector class with "
                          "a SerialRobot, an OpenCVCamera and printed markers (docs/robot.md)")
     from pivla.robot.autocollect import run_on_twin
 
-    report = run_on_twin(args.out, args.attempts, args.suite, args.seed, args.image_size)
+    report = run_on_twin(cmd.out, cmd.attempts, cmd.arm.suite, cmd.arm.seed, cmd.image_size)
     rows = report.pop("per_attempt")
-    if args.verbose:
+    if cmd.verbose:
         report["per_attempt"] = rows
     print(json.dumps(report, indent=2))
     return 0
-
-
-def register(command: str, parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("-v", "--verbose", action="store_true")
-    sub = parser.add_subparsers(dest="robot_command", metavar="SUBCOMMAND", required=True)
-
-    p = sub.add_parser("simboard", help="run the firmware on a simulated Uno; prints the serial port first")
-    p.add_argument("--firmware", default=None, help="firmware ELF (default: build firmware/ and use it)")
-    p.add_argument("--realtime", type=float, default=1.0, help="simulation speed vs real time (0: unthrottled)")
-    p.add_argument("--pulses", action="store_true", help="also print measured servo pulse widths")
-    p.set_defaults(func=cmd_simboard)
-
-    p = sub.add_parser("check", help="ping the board, print version, state, config and limits")
-    p.add_argument("--port", required=True)
-    p.add_argument("--bench", type=int, default=0, metavar="N", help="also time N round trips")
-    p.set_defaults(func=cmd_check)
-
-    p = sub.add_parser("calibrate", help="write the calibration file and program limits into the board")
-    _robot_args(p)
-    p.add_argument("--jog", action="store_true", help="interactively jog each joint to its zero")
-    p.set_defaults(func=cmd_calibrate)
-
-    p = sub.add_parser("home", help="move to the home pose")
-    _robot_args(p)
-    p.set_defaults(func=cmd_home)
-
-    p = sub.add_parser("teleop", help="keyboard teleoperation in the terminal")
-    _robot_args(p)
-    p.set_defaults(func=cmd_teleop)
-
-    p = sub.add_parser("record", help="teleoperate and record demonstrations (LIBERO layout)")
-    _robot_args(p, cameras=True)
-    p.add_argument("--out", required=True, help="dataset directory")
-    p.add_argument("--instruction", required=True)
-    p.set_defaults(func=cmd_record)
-
-    p = sub.add_parser("run", help="run a trained policy on the arm in closed loop")
-    _robot_args(p, cameras=True)
-    p.add_argument("--policy", required=True, help="training run directory")
-    p.add_argument("--executor", default="aurd")
-    p.add_argument("--instruction", required=True)
-    p.add_argument("--episodes", type=int, default=1)
-    p.add_argument("--max-steps", type=int, default=300)
-    p.set_defaults(func=cmd_run)
-
-    p = sub.add_parser("repeatability", help="move to targets repeatedly and report the scatter (mm)")
-    _robot_args(p)
-    p.add_argument("--targets", type=int, default=5)
-    p.add_argument("--repeats", type=int, default=10)
-    p.set_defaults(func=cmd_repeatability)
-
-    p = sub.add_parser("autocollect", help="camera-only scripted pick-and-place collection (twin)")
-    _robot_args(p)
-    p.add_argument("--out", required=True, help="dataset directory")
-    p.add_argument("--attempts", type=int, default=50)
-    p.add_argument("--image-size", type=int, default=96)
-    p.set_defaults(func=cmd_autocollect)
-
-    def configure_logging(args):
-        logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
-        return args._func(args)
-
-    for sp in sub.choices.values():
-        sp.set_defaults(_func=sp.get_default("func"), func=configure_logging)

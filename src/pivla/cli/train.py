@@ -1,76 +1,121 @@
-"""``pivla train`` and ``pivla info``."""
+"""``pivla train``, ``pivla info``, ``pivla merge-lora`` and ``pivla convert-openvla``."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from pivla.config import from_dict
+from pivla.io import read_json
+from pivla.training.config import PRESETS, TrainConfig
+from pivla.training.merge import MergeConfig
 
 
-def register(command: str, parser: argparse.ArgumentParser) -> None:
-    if command == "info":
-        parser.add_argument("run", help="run directory")
-        parser.add_argument("--json", action="store_true", help="print one JSON object")
-        parser.set_defaults(func=info)
-        return
-    from pivla.config import add_config_args
-    from pivla.training.trainer import TrainConfig
+@dataclass
+class TrainCommand:
+    """A training run, with where its defaults come from."""
 
-    parser.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
-    parser.add_argument("--config", help="JSON config file to start from (flags override it)")
-    add_config_args(parser, TrainConfig)
-    parser.set_defaults(func=train)
+    run: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
+    preset: Literal["default", "libero", "paper"] = "default"
+    """Named defaults: default is the validated twin recipe; libero: LIBERO's cameras and proprio at 128 px;
+    paper: an OpenVLA-style VLM with LoRA 32 and a DINOv2 target (local checkpoints)."""
+    config: str | None = None
+    """Start from this JSON config (e.g. a run's config.json) instead of a preset; flags override it."""
+    resume: bool = False
+    """Continue the run in --out from its last checkpoint, with the config it was started with."""
 
 
-def train(args: argparse.Namespace) -> int:
-    from pathlib import Path
+def train_default(argv: list[str]) -> tuple[TrainCommand, list[str]]:
+    """The defaults the flags start from: a preset, a JSON config file, or a resumed run's own config."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--preset", choices=sorted(PRESETS), default="default")
+    pre.add_argument("--config", default=None)
+    pre.add_argument("--resume", action="store_true")
+    pre.add_argument("--out", default=None)
+    known, _ = pre.parse_known_args(argv)
+    base = PRESETS[known.preset]()
+    if known.config:
+        base = from_dict(TrainConfig, read_json(known.config))
+    elif known.resume and known.out and (Path(known.out) / "config.json").exists():
+        base = from_dict(TrainConfig, read_json(Path(known.out) / "config.json"))
+    return TrainCommand(run=base, preset=known.preset), argv
 
-    from pivla import config as cfgmod
-    from pivla.training import checkpoint as ck
-    from pivla.training.trainer import TrainConfig, train as run_train
 
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    base = None
-    if args.config:
-        base = cfgmod.from_dict(TrainConfig, ck.read_json(Path(args.config)))
-    out = vars(args).get("cfg:out")
-    if args.resume and base is None and out and (Path(out) / ck.CONFIG_FILE).exists():
-        base = ck.read_run_config(Path(out))
-    cfg = cfgmod.build_config(TrainConfig, args, base)
-    run_dir = run_train(cfg, resume=args.resume)
+def train(cmd: TrainCommand) -> int:
+    from pivla.training.trainer import train as run_train
+
+    run_dir = run_train(cmd.run, resume=cmd.resume)
     print(f"run saved to {run_dir}")
     return 0
 
 
-def info(args: argparse.Namespace) -> int:
-    from pathlib import Path
+@dataclass
+class InfoConfig:
+    """Which run to describe."""
 
-    from pivla import load_policy
+    policy: str
+    """Run directory."""
+    json: bool = False
+    """Print one JSON object."""
+
+
+def info(cfg: InfoConfig) -> int:
+    from pivla.policy import load_policy
     from pivla.training import checkpoint as ck
 
-    run = Path(args.run)
+    run = Path(cfg.policy)
     policy = load_policy(run, device="cpu", encoder_runtime="torch")
-    status = ck.read_json(run / ck.STATUS_FILE) if (run / ck.STATUS_FILE).exists() else {}
+    status = read_json(run / ck.STATUS_FILE) if (run / ck.STATUS_FILE).exists() else {}
     data = {
         "run": str(run),
-        "config": ck.read_json(run / ck.CONFIG_FILE),
+        "config": read_json(run / ck.CONFIG_FILE),
+        "spec": policy.spec.to_dict(),
         "parameters": policy.model.parameter_counts(),
-        "latent_dim": policy.model.latent_dim,
         "vocab_size": len(policy.text.vocab),
         "status": status,
         "calibration": vars(policy.calibration) if policy.calibration else None,
     }
-    if args.json:
+    if cfg.json:
         print(json.dumps(data, indent=2))
         return 0
     print(f"run: {run}")
-    st = status or {}
-    print(f"training: step {st.get('step', '?')}/{st.get('steps', '?')} done={st.get('done', '?')} "
-          f"elapsed={st.get('elapsed_s', '?')}s")
-    if st.get("last"):
-        print("last logged: " + ", ".join(f"{k}={v}" for k, v in st["last"].items()))
+    print(f"training: step {status.get('step', '?')}/{status.get('steps', '?')} done={status.get('done', '?')} "
+          f"elapsed={status.get('elapsed_s', '?')}s")
+    if status.get("last"):
+        print("last logged: " + ", ".join(f"{k}={v}" for k, v in status["last"].items()))
     print("parameters: " + ", ".join(f"{k}={v:,}" for k, v in data["parameters"].items()))
+    print(f"reads: {data['spec']}")
     print(f"calibration: {data['calibration']}")
     print("config:")
     print(json.dumps(data["config"], indent=2))
+    return 0
+
+
+def merge_lora(cfg: MergeConfig) -> int:
+    from pivla.training.merge import merge_run
+
+    print(f"merged run saved to {merge_run(cfg)}")
+    return 0
+
+
+@dataclass
+class ConvertOpenVLAConfig:
+    """OpenVLA's released checkpoint as plain transformers parts."""
+
+    src: str
+    """OpenVLA checkpoint directory (config.json, model.safetensors.index.json, shards, tokenizer,
+    preprocessor_config.json)."""
+    out: str
+    """Directory to write (must not exist); give it to --model.backbone.path."""
+
+
+def convert_openvla(cfg: ConvertOpenVLAConfig) -> int:
+    from pivla.model.openvla import convert_openvla as convert
+
+    print(f"converted OpenVLA checkpoint saved to {convert(cfg.src, cfg.out)}")
     return 0

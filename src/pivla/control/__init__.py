@@ -5,13 +5,21 @@ The math is in :mod:`pivla.control.math` as pure functions; executors in :mod:`p
 
 from pivla.control.executors import EXECUTORS, make_executor
 from pivla.control.math import (
-    action_uncertainty, adahorizon, composite_uncertainty, decide_horizon, dequantize, ensemble_weights,
-    prediction_uncertainty, step_event, surprise, temporal_ensemble, wilson_interval,
+    action_uncertainty,
+    adahorizon,
+    composite_uncertainty,
+    decide_horizon,
+    dequantize,
+    ensemble_weights,
+    prediction_uncertainty,
+    step_event,
+    surprise,
+    temporal_ensemble,
 )
 from pivla.control.runner import EpisodeResult, ExecutorActor, run_episode
 
 __all__ = [
     "EXECUTORS", "EpisodeResult", "ExecutorActor", "action_uncertainty", "adahorizon", "composite_uncertainty",
     "decide_horizon", "dequantize", "ensemble_weights", "make_executor", "prediction_uncertainty", "run_episode",
-    "step_event", "surprise", "temporal_ensemble", "wilson_interval",
+    "step_event", "surprise", "temporal_ensemble",
 ]

@@ -6,33 +6,43 @@ AURD sees it online (the newest prediction error before step k; 0 for k = 0). Th
 of these in-distribution signals: tau_low = P50(U), tau_high = P99(U), V_thresh = P10(V) by default, so
 that on data like the validation set AURD rarely intervenes, and it intervenes when signals leave that
 range. P99, not P95: with P95 the demo's 80-px policy replanned ~3x as often as at 96 px and lost to a fixed
-horizon on validation episodes; P99 took it level with fixed (docs/results.md, session 11). The same
+horizon on validation episodes; P99 took it level with fixed (docs/experiments.md#replan-threshold-at-p99). The same
 percentiles of U_act alone give AdaHorizon its thresholds (``act_low``, ``act_high``): EverydayVLA's
 absolute 0.03 / 0.06 belong to its model's action scale, and on ours they made it replan after every
-action (docs/results.md).
+action (docs/experiments.md#adahorizon-thresholds-from-calibration).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
-from pivla.control.math import DEFAULT_ETA, surprise
+from pivla.control.contract import DEFAULT_ETA, BatchPolicy, Calibration
+from pivla.control.math import combine_uncertainty, prediction_uncertainty, surprise
 from pivla.data.format import Episode
-from pivla.policy import Calibration, Policy
-from pivla.training.checkpoint import CALIBRATION_FILE, atomic_write_json
 
 
 @dataclass
 class CalibrationConfig:
+    """Which percentiles of the policy's own in-distribution signals become AURD's thresholds."""
+
     tau_low_pct: float = 50.0
+    """Percentile of U for tau_low."""
     tau_high_pct: float = 99.0
+    """Percentile of U for tau_high, and of U_act for AdaHorizon's act_high."""
     v_pct: float = 10.0
+    """Percentile of V for V_thresh."""
     eta: float = DEFAULT_ETA
-    stride: int = 2  # every stride-th time step of each episode
+    """Weight of U_act in U (Eq. 14)."""
+    stride: int = 2
+    """Every stride-th time step of each episode is sampled."""
     batch: int = 64
-    pred_baseline: str = "none"  # as AURD's option: "episode" measures U_pred above the episode's floor so far
+    """Observations per forward pass."""
+    pred_baseline: Literal["none", "episode"] = "episode"
+    """episode: U_pred above the episode's smallest so far (AURD then measures it the same way); without it
+    AURD replanned after every action in unseen environments (docs/experiments.md#prediction-error-above-the-episode-floor)."""
 
 
 def _obs_at(ep: Episode, t: int) -> dict:
@@ -41,10 +51,10 @@ def _obs_at(ep: Episode, t: int) -> dict:
     return obs
 
 
-def calibration_signals(policy: Policy, episodes: list[Episode], cfg: CalibrationConfig) -> dict[str, np.ndarray]:
+def calibration_signals(policy: BatchPolicy, episodes: list[Episode], cfg: CalibrationConfig) -> dict[str, np.ndarray]:
     """U (N, H), U_act, U_pred and V (N, H) for sampled steps of successful episodes (NaN where o_{t+k}
     lies past the episode end)."""
-    H = policy.horizon
+    H = policy.spec.horizon
     us, uas, ups, vs = [], [], [], []
     for ep in episodes:
         if not ep.success:
@@ -63,7 +73,7 @@ def calibration_signals(policy: Policy, episodes: list[Episode], cfg: Calibratio
                 u_pred[0] = 0.0
                 for k in range(1, H):
                     if t + k < T:
-                        u_pred[k] = np.linalg.norm(z[t + k] - out["latents"][i, k - 1])
+                        u_pred[k] = prediction_uncertainty(z[t + k], out["latents"][i, k - 1])
                 if cfg.pred_baseline == "episode":
                     raw = u_pred.copy()
                     for k in range(1, H):
@@ -72,7 +82,7 @@ def calibration_signals(policy: Policy, episodes: list[Episode], cfg: Calibratio
                             floor = raw[k] if floor is None else min(floor, raw[k])
                 uas.append(u_act[i])
                 ups.append(u_pred)
-                us.append(cfg.eta * u_act[i] + (1 - cfg.eta) * u_pred)
+                us.append(combine_uncertainty(u_act[i], u_pred, cfg.eta))
                 vs.append(out["values"][i, :H])
     if not us:
         raise ValueError("no successful validation episodes to calibrate on")
@@ -91,9 +101,10 @@ def thresholds(signals: dict[str, np.ndarray], cfg: CalibrationConfig, source: s
                        pred_baseline=cfg.pred_baseline)
 
 
-def calibrate(policy: Policy, episodes: list[Episode], cfg: CalibrationConfig | None = None, source: str = "",
-              save: bool = True) -> tuple[Calibration, dict]:
-    """Compute thresholds, store them with the policy (``calibration.json``) and return them with stats."""
+def calibrate(policy: BatchPolicy, episodes: list[Episode], cfg: CalibrationConfig | None = None,
+              source: str = "") -> tuple[Calibration, dict]:
+    """Compute thresholds, set them on the policy and return them with statistics (a run directory stores
+    them with ``pivla.training.checkpoint.write_calibration``)."""
     cfg = cfg or CalibrationConfig()
     test = sum(ep.meta.get("split") == "test" for ep in episodes)
     if test:
@@ -109,8 +120,5 @@ def calibrate(policy: Policy, episodes: list[Episode], cfg: CalibrationConfig | 
         "v_mean_by_step": sig["v"].mean(0).round(5).tolist(),
         "percentiles": {"tau_low": cfg.tau_low_pct, "tau_high": cfg.tau_high_pct, "v_thresh": cfg.v_pct},
     }
-    if save and policy.run_dir is not None:
-        atomic_write_json(policy.run_dir / CALIBRATION_FILE, vars(calib))
-        atomic_write_json(policy.run_dir / "calibration_stats.json", stats)
     policy.calibration = calib
     return calib, stats

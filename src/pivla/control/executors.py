@@ -3,7 +3,9 @@
     executor.reset()                       # at the start of an episode
     action = executor.act(policy, obs)     # physical 7-D action for this control step
 
-and all write a per-step ``trace`` and a per-plan list ``plans`` of (executed horizon, event). ``aurd`` is
+Each executor is built from its typed config (``FixedConfig``, ``EnsembleConfig``, ``AdaHorizonConfig``,
+``AURDConfig``; ``make_executor``) and talks to the policy only through the ``ChunkPolicy`` contract. All
+write a per-step ``trace`` and a per-plan list ``plans`` of (executed horizon, event). ``aurd`` is
 PI-VLA's decider; ``fixed``, ``ensemble`` (ACT temporal ensembling) and ``adahorizon`` (EverydayVLA) are
 the baselines.
 
@@ -20,16 +22,26 @@ prediction, "why AURD does not help"). Monitoring never changes an action, and i
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Annotated, Any, ClassVar, Literal, Union
 
 import numpy as np
+import tyro
 
-from pivla.control.math import DEFAULT_ETA, adahorizon, prediction_uncertainty, step_event, surprise, temporal_ensemble
+from pivla.control.contract import DEFAULT_ETA, ChunkPolicy
+from pivla.control.math import (
+    adahorizon,
+    combine_uncertainty,
+    prediction_uncertainty,
+    step_event,
+    surprise,
+    temporal_ensemble,
+)
 
 GRIPPER = 6
 EVERYDAYVLA_EXTEND_BELOW, EVERYDAYVLA_REPLAN_ABOVE = 0.03, 0.06  # AdaHorizon's constants in its own code
@@ -61,18 +73,97 @@ class Plan:
 
 
 @dataclass
+class FixedConfig:
+    """Fixed horizon: execute the first ``horizon`` actions of every chunk open loop, then replan."""
+
+    kind: ClassVar[str] = "fixed"
+    horizon: int = 5
+    """Actions executed per chunk."""
+    monitor: bool = True
+    """Also encode each new observation for the trace's U_pred and U (never changes an action)."""
+
+
+@dataclass
+class EnsembleConfig:
+    """ACT temporal ensembling: query every step, average every live prediction for the current step."""
+
+    kind: ClassVar[str] = "ensemble"
+    m: float = 0.01
+    """Weights exp(-m * i), i = 0 for the oldest prediction."""
+    monitor: bool = True
+    """Also encode each new observation for the trace's U_pred and U (never changes an action)."""
+
+
+@dataclass
+class AdaHorizonConfig:
+    """EverydayVLA's AdaHorizon: the horizon chosen per chunk from the two heads' disagreement (U_act)."""
+
+    kind: ClassVar[str] = "adahorizon"
+    min_exec: int = 4
+    """Actions executed at least (unless one of them is untrusted)."""
+    extend_below: float | None = None
+    """Extend the plan while U_act is below this (default: the calibrated act_low, else EverydayVLA's 0.03)."""
+    replan_above: float | None = None
+    """Replan at a step whose U_act exceeds this (default: the calibrated act_high, else EverydayVLA's 0.06)."""
+    monitor: bool = True
+    """Also encode each new observation for the trace's U_pred and U (never changes an action)."""
+
+
+@dataclass
+class AURDConfig:
+    """PI-VLA's Active Uncertainty-Resolving Decider (Algorithm 1). Thresholds default to the policy's
+    calibration (``pivla calibrate``)."""
+
+    kind: ClassVar[str] = "aurd"
+    tau_low: float | None = None
+    """Prune in (tau_low, tau_high] when the value is low (default: calibrated)."""
+    tau_high: float | None = None
+    """Replan above this U (default: calibrated)."""
+    v_thresh: float | None = None
+    """A value below this makes a step in the band untrusted (default: calibrated)."""
+    eta: float | None = None
+    """Weight of U_act in U, Eq. 14 (default: calibrated, else 0.7)."""
+    check: Literal["before", "after"] = "before"
+    """Test step k before executing it (METHOD.md), or after (the paper's literal order; never pauses)."""
+    horizon: int | None = None
+    """Nominal horizon (default: the policy's H)."""
+    max_pauses: int = 3
+    """Pauses in a row before the first action is executed anyway (a static scene cannot stall the robot)."""
+    pred_baseline: Literal["none", "episode"] | None = None
+    """episode: U_pred above the episode's floor (control.math.surprise); default: as calibrated."""
+    commit_after_cut: bool = True
+    """The plan made right after a cut runs its nominal horizon unchecked; the plan after it is checked again."""
+    monitor: bool = True
+    """Encode the observations of committed steps for the trace too (outside the control time)."""
+
+
+def _choice(cls: type) -> Any:
+    """A config as one named choice of ``ExecutorConfig`` (``--executor NAME`` on the command line)."""
+    return Annotated[cls, tyro.conf.subcommand(cls.kind)]
+
+
+ExecutorConfig = Union[_choice(AURDConfig), _choice(FixedConfig), _choice(EnsembleConfig), _choice(AdaHorizonConfig)]
+
+
 class BaseExecutor:
-    name: str = "base"
-    monitor: bool = True  # baselines: also compute U_pred and U for the trace (one encoding per new observation)
-    trace: list[dict] = field(default_factory=list)
-    plans: list[tuple[int, str]] = field(default_factory=list)
-    t: int = 0
-    last_gripper: float = -1.0
-    monitor_s: float = 0.0  # time spent on monitoring only, excluded from control-step timings
-    _pred_min: float | None = None
+    """State shared by every executor: the trace, the plan log, the step counter and the gripper held."""
+
+    name = "base"
+
+    def __init__(self, cfg: Any):
+        self.cfg = cfg
+        self.monitor = cfg.monitor
+        self.monitor_s = 0.0  # time spent on monitoring only, excluded from control-step timings
+        self.reset()
 
     def reset(self) -> None:
-        self.trace, self.plans, self.t, self.last_gripper, self._pred_min = [], [], 0, -1.0, None
+        self.trace: list[dict] = []
+        self.plans: list[tuple[int, str]] = []
+        self.t, self.last_gripper = 0, -1.0
+        self._pred_min: float | None = None
+
+    def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
+        raise NotImplementedError
 
     def _emit(self, action: np.ndarray, **row: Any) -> np.ndarray:
         action = np.asarray(action, np.float32)
@@ -87,10 +178,10 @@ class BaseExecutor:
         a[GRIPPER] = self.last_gripper
         return a
 
-    def _pred_baseline(self, policy) -> str:
+    def _pred_baseline(self, policy: ChunkPolicy) -> str:
         return getattr(policy.calibration, "pred_baseline", "none") or "none"
 
-    def _eta(self, policy) -> float:
+    def _eta(self, policy: ChunkPolicy) -> float:
         """Weight of U_act in U: the calibration's, else Eq. 13's default."""
         return policy.calibration.eta if policy.calibration is not None else DEFAULT_ETA
 
@@ -103,7 +194,7 @@ class BaseExecutor:
         self._pred_min = raw if self._pred_min is None else min(self._pred_min, raw)
         return u
 
-    def _monitored(self, policy, obs: dict, predicted: np.ndarray | None, u_act: float) -> dict[str, float]:
+    def _monitored(self, policy: ChunkPolicy, obs: dict, predicted: np.ndarray | None, u_act: float) -> dict[str, float]:
         """U_pred and U of this step exactly as AURD would form them (``predicted``: the latent the current
         plan predicted for ``obs``, None on a step that queried the policy), for a baseline's trace."""
         if not self.monitor:
@@ -111,7 +202,7 @@ class BaseExecutor:
         with self._monitoring():
             u_pred = 0.0 if predicted is None else self._u_pred(policy.encode(obs), predicted, self._pred_baseline(policy))
             eta = self._eta(policy)
-        return {"u_pred": u_pred, "u": eta * float(u_act) + (1 - eta) * u_pred}
+        return {"u_pred": u_pred, "u": combine_uncertainty(float(u_act), u_pred, eta)}
 
     @contextmanager
     def _monitoring(self) -> Iterator[None]:
@@ -129,21 +220,21 @@ def _jsonable(v: Any) -> Any:
     return v
 
 
-@dataclass
 class FixedExecutor(BaseExecutor):
     """Execute the first ``horizon`` actions of every chunk open loop, then replan."""
 
-    name: str = "fixed"
-    horizon: int = 5
-    _plan: Plan | None = None
-    _k: int = 0
+    name = "fixed"
+
+    def __init__(self, cfg: FixedConfig | None = None):
+        super().__init__(cfg or FixedConfig())
 
     def reset(self) -> None:
         super().reset()
-        self._plan, self._k = None, 0
+        self._plan: Plan | None = None
+        self._k = 0
 
-    def act(self, policy, obs: dict) -> np.ndarray:
-        replanned = self._plan is None or self._k >= min(self.horizon, len(self._plan.actions))
+    def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
+        replanned = self._plan is None or self._k >= min(self.cfg.horizon, len(self._plan.actions))
         ended = None
         if replanned:
             if self._plan is not None:
@@ -157,21 +248,21 @@ class FixedExecutor(BaseExecutor):
                           v=p.value(k), ended=ended)
 
 
-@dataclass
 class EnsembleExecutor(BaseExecutor):
     """ACT temporal ensembling: query every step, average every live prediction for the current step
     with weights exp(-m * i), oldest first (in normalized space; the gripper is thresholded after)."""
 
-    name: str = "ensemble"
-    m: float = 0.01
-    _history: deque = field(default_factory=deque)
-    _predicted: np.ndarray | None = None  # the previous query's latent for this step's observation
+    name = "ensemble"
+
+    def __init__(self, cfg: EnsembleConfig | None = None):
+        super().__init__(cfg or EnsembleConfig())
 
     def reset(self) -> None:
         super().reset()
-        self._history, self._predicted = deque(), None
+        self._history: deque = deque()
+        self._predicted: np.ndarray | None = None  # the previous query's latent for this step's observation
 
-    def act(self, policy, obs: dict) -> np.ndarray:
+    def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
         out = policy.infer(obs)
         plan = Plan.from_output(out)
         # every step queries, so the newest prediction of this observation is the previous query's first latent
@@ -182,46 +273,43 @@ class EnsembleExecutor(BaseExecutor):
         while self._history and self.t - self._history[0][0] >= K:
             self._history.popleft()
         preds = np.stack([chunk[self.t - t0] for t0, chunk in self._history])
-        action = policy.to_actions(temporal_ensemble(preds, self.m).astype(np.float32))
+        action = policy.to_actions(temporal_ensemble(preds, self.cfg.m).astype(np.float32))
         self.plans.append((1, "complete"))
         return self._emit(action, plan_step=0, replanned=True, u_act=plan.u_act[0], **signals, v=plan.values[0],
                           ended="complete" if self.t > 0 else None, n_ensembled=len(preds))
 
 
-@dataclass
 class AdaHorizonExecutor(BaseExecutor):
     """EverydayVLA's AdaHorizon: horizon chosen per chunk from the discrete/continuous disagreement.
 
     Thresholds: given explicitly, else the policy's calibrated ``act_low`` / ``act_high`` (percentiles of
     U_act on validation data, like AURD's), else EverydayVLA's absolute 0.03 / 0.06."""
 
-    name: str = "adahorizon"
-    min_exec: int = 4
-    extend_below: float | None = None
-    replan_above: float | None = None
-    _plan: Plan | None = None
-    _k: int = 0
-    _h: int = 0
-    _event: str | None = None  # how the current plan ends, decided when it was made
+    name = "adahorizon"
+
+    def __init__(self, cfg: AdaHorizonConfig | None = None):
+        super().__init__(cfg or AdaHorizonConfig())
 
     def reset(self) -> None:
         super().reset()
-        self._plan, self._k, self._h, self._event = None, 0, 0, None
+        self._plan: Plan | None = None
+        self._k, self._h = 0, 0
+        self._event: str | None = None  # how the current plan ends, decided when it was made
 
-    def _thresholds(self, policy) -> tuple[float, float]:
+    def _thresholds(self, policy: ChunkPolicy) -> tuple[float, float]:
         c = policy.calibration
         low = c.act_low if c is not None and c.act_low is not None else EVERYDAYVLA_EXTEND_BELOW
         high = c.act_high if c is not None and c.act_high is not None else EVERYDAYVLA_REPLAN_ABOVE
-        return (low if self.extend_below is None else self.extend_below,
-                high if self.replan_above is None else self.replan_above)
+        return (low if self.cfg.extend_below is None else self.cfg.extend_below,
+                high if self.cfg.replan_above is None else self.cfg.replan_above)
 
-    def act(self, policy, obs: dict) -> np.ndarray:
+    def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
         replanned = self._plan is None or self._k >= self._h
         ended = None
         if replanned:
             ended = self._event
             self._plan = Plan.from_output(policy.infer(obs))
-            self._h, self._event = adahorizon(self._plan.u_act, self.min_exec, *self._thresholds(policy))
+            self._h, self._event = adahorizon(self._plan.u_act, self.cfg.min_exec, *self._thresholds(policy))
             self._k = 0
             self.plans.append((self._h, self._event))
         k, p = self._k, self._plan
@@ -231,7 +319,6 @@ class AdaHorizonExecutor(BaseExecutor):
                           v=p.value(k), ended=ended, h_exec=self._h)
 
 
-@dataclass
 class AURDExecutor(BaseExecutor):
     """PI-VLA's Active Uncertainty-Resolving Decider (Algorithm 1, METHOD.md "AURD").
 
@@ -241,65 +328,53 @@ class AURDExecutor(BaseExecutor):
     horizon completes. A stop before the first action is a pause: hold pose one step, then replan; after
     ``max_pauses`` pauses in a row the first action is executed anyway, so a static scene cannot stall the
     robot forever. ``check="after"`` is the paper's literal order (execute, observe, then test).
-    Thresholds default to the policy's calibration (``pivla calibrate``).
 
     ``commit_after_cut`` (default): the plan made right after a cut (replan, prune or pause) runs its nominal
     horizon unchecked, and the plan after it is checked again. Without it a policy whose U stays above
     tau_high in some state cut every new plan after one action or paused again and again until the step
-    limit (docs/results.md, "Session 18"). A committed step needs no observed latent for a decision; it is
-    still encoded for the trace as monitoring (``monitor``), outside the control time.
+    limit (docs/experiments.md#commit-after-a-cut). A committed step needs no observed latent for a decision;
+    it is still encoded for the trace as monitoring (``monitor``), outside the control time.
     """
 
-    name: str = "aurd"
-    tau_low: float | None = None
-    tau_high: float | None = None
-    v_thresh: float | None = None
-    eta: float | None = None
-    check: str = "before"
-    horizon: int | None = None
-    max_pauses: int = 3
-    pred_baseline: str | None = None  # "episode": U_pred above the episode's floor (math.surprise); None: as calibrated
-    commit_after_cut: bool = True
-    _plan: Plan | None = None
-    _k: int = 0
-    _pauses: int = 0
-    _settings: tuple | None = None  # thresholds, eta, U_pred baseline and horizon, fixed for an episode
+    name = "aurd"
 
-    def __post_init__(self) -> None:
-        if self.pred_baseline not in (None, "none", "episode"):
-            raise ValueError(f"pred_baseline must be 'none' or 'episode', got {self.pred_baseline!r}")
+    def __init__(self, cfg: AURDConfig | None = None):
+        super().__init__(cfg or AURDConfig())
 
     def reset(self) -> None:
         super().reset()
-        self._plan, self._k, self._pauses, self._settings = None, 0, 0, None
+        self._plan: Plan | None = None
+        self._k, self._pauses = 0, 0
+        self._settings: tuple | None = None  # thresholds, eta, U_pred baseline and horizon, fixed for an episode
 
-    def _pred_baseline(self, policy) -> str:
-        return self.pred_baseline if self.pred_baseline is not None else super()._pred_baseline(policy)
+    def _pred_baseline(self, policy: ChunkPolicy) -> str:
+        return self.cfg.pred_baseline if self.cfg.pred_baseline is not None else super()._pred_baseline(policy)
 
-    def _thresholds(self, policy) -> tuple[float, float, float, float]:
-        c = policy.calibration
-        vals = [self.tau_low, self.tau_high, self.v_thresh]
-        if any(v is None for v in vals) and c is None:
-            raise ValueError(f"AURD needs thresholds: run `pivla calibrate --policy {policy.run_dir} --data VAL` "
-                             "or pass tau_low/tau_high/v_thresh")
-        tl = self.tau_low if self.tau_low is not None else c.tau_low
-        th = self.tau_high if self.tau_high is not None else c.tau_high
-        vt = self.v_thresh if self.v_thresh is not None else c.v_thresh
-        eta = self.eta if self.eta is not None else self._eta(policy)
+    def _thresholds(self, policy: ChunkPolicy) -> tuple[float, float, float, float]:
+        c, cfg = policy.calibration, self.cfg
+        if any(v is None for v in (cfg.tau_low, cfg.tau_high, cfg.v_thresh)) and c is None:
+            raise ValueError("AURD needs thresholds: calibrate the policy (`pivla calibrate --policy RUN --data VAL`) "
+                             "or give tau_low, tau_high and v_thresh")
+        tl = cfg.tau_low if cfg.tau_low is not None else c.tau_low
+        th = cfg.tau_high if cfg.tau_high is not None else c.tau_high
+        vt = cfg.v_thresh if cfg.v_thresh is not None else c.v_thresh
+        eta = cfg.eta if cfg.eta is not None else self._eta(policy)
         return tl, th, vt, eta
 
     def _committed(self) -> bool:
         """The current plan was made right after a cut (the plan log's last entry) and runs unchecked."""
-        return self.commit_after_cut and bool(self.plans) and self.plans[-1][1] != "complete"
+        return self.cfg.commit_after_cut and bool(self.plans) and self.plans[-1][1] != "complete"
 
     def _end_plan(self, h: int, event: str) -> None:
         self.plans.append((h, event))
         self._plan, self._k = None, 0
 
-    def act(self, policy, obs: dict) -> np.ndarray:
+    def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
         if self._settings is None:
-            self._settings = (*self._thresholds(policy), self._pred_baseline(policy), self.horizon or policy.horizon)
+            self._settings = (*self._thresholds(policy), self._pred_baseline(policy),
+                              self.cfg.horizon or policy.spec.horizon)
         tau_low, tau_high, v_thresh, eta, baseline, H = self._settings
+        check = self.cfg.check
         ended = None
         cut: dict[str, float] = {}  # U and V of the step a "replan" / "prune" did not trust
         z_obs = None
@@ -308,16 +383,16 @@ class AURDExecutor(BaseExecutor):
         # first step has U_pred = 0), unless check="after" tests that step first; a committed plan's steps
         # are read by no decision, only by the trace (monitoring)
         committed = observed and self._committed()
-        if observed and (self.check == "after" or self._k < min(H, len(self._plan.actions))):
+        if observed and (check == "after" or self._k < min(H, len(self._plan.actions))):
             if not committed:
                 z_obs = policy.encode(obs)
             elif self.monitor:
                 with self._monitoring():
                     z_obs = policy.encode(obs)
-        if self.check == "after" and observed and not committed:
+        if check == "after" and observed and not committed:
             k = self._k - 1  # the step just executed, now observed
             u_pred = self._u_pred(z_obs, self._plan.latents[k], baseline)
-            u = eta * self._plan.u_act[k] + (1 - eta) * u_pred
+            u = combine_uncertainty(self._plan.u_act[k], u_pred, eta)
             event = step_event(u, self._plan.value(k), tau_low, tau_high, v_thresh)
             if event is not None:
                 ended, cut = event, {"ended_u": u, "ended_v": self._plan.value(k)}
@@ -331,16 +406,16 @@ class AURDExecutor(BaseExecutor):
                 self._plan, self._k, replanned, z_obs = Plan.from_output(policy.infer(obs)), 0, True, None
             k, p = self._k, self._plan
             u_pred = 0.0 if k == 0 or z_obs is None else self._u_pred(z_obs, p.latents[k - 1], baseline)
-            u = eta * float(p.u_act[k]) + (1 - eta) * u_pred
+            u = combine_uncertainty(float(p.u_act[k]), u_pred, eta)
             v = p.value(k)
             committed = self._committed()
-            checked = self.check == "before" and not committed
+            checked = check == "before" and not committed
             event = step_event(u, v, tau_low, tau_high, v_thresh) if checked else None
             if event is not None and k > 0:
                 ended, cut = event, {"ended_u": u, "ended_v": v}
                 self._end_plan(k, event)
                 continue  # replan from the same observation
-            if event is not None and self._pauses < self.max_pauses:
+            if event is not None and self._pauses < self.cfg.max_pauses:
                 self._pauses += 1
                 self._end_plan(0, "pause")
                 return self._emit(self.hold_action(), plan_step=0, replanned=replanned, u_act=p.u_act[0],
@@ -352,11 +427,35 @@ class AURDExecutor(BaseExecutor):
                               **cut)
 
 
-EXECUTORS = {"aurd": AURDExecutor, "fixed": FixedExecutor, "ensemble": EnsembleExecutor, "adahorizon": AdaHorizonExecutor}
+EXECUTORS: dict[str, tuple[type, type[BaseExecutor]]] = {
+    "aurd": (AURDConfig, AURDExecutor), "fixed": (FixedConfig, FixedExecutor),
+    "ensemble": (EnsembleConfig, EnsembleExecutor), "adahorizon": (AdaHorizonConfig, AdaHorizonExecutor),
+}
 
 
-def make_executor(name: str, **options: Any) -> BaseExecutor:
-    """An executor by name with optional overrides (e.g. ``horizon=5`` for fixed, ``check="after"``)."""
+def executor_config(name: str, **options: Any) -> ExecutorConfig:
+    """The config of an executor by name, with options replacing its defaults (unknown options are an error)."""
     if name not in EXECUTORS:
         raise ValueError(f"unknown executor {name!r}; choose from {sorted(EXECUTORS)}")
-    return EXECUTORS[name](**options)
+    cls = EXECUTORS[name][0]
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(options) - fields)
+    if unknown:
+        raise ValueError(f"executor {name!r} has no option {', '.join(unknown)} (options: {', '.join(sorted(fields))})")
+    return cls(**options)
+
+
+def make_executor(cfg: ExecutorConfig | str, **options: Any) -> BaseExecutor:
+    """An executor from its config, or by name with options (``make_executor("fixed", horizon=3)``)."""
+    if isinstance(cfg, str):
+        cfg = executor_config(cfg, **options)
+    elif options:
+        cfg = dataclasses.replace(cfg, **options)
+    if cfg.kind == "aurd" and cfg.pred_baseline not in (None, "none", "episode"):
+        raise ValueError(f"pred_baseline must be 'none' or 'episode', got {cfg.pred_baseline!r}")
+    return EXECUTORS[cfg.kind][1](cfg)
+
+
+def config_to_dict(cfg: ExecutorConfig) -> dict[str, Any]:
+    """An executor config as JSON: its name and options (the inverse of ``executor_config(**d)``)."""
+    return {"name": cfg.kind, **dataclasses.asdict(cfg)}

@@ -8,16 +8,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from pivla.control.contract import DEFAULT_ETA
 from pivla.model.tokenizer import dequantize as _dequantize
 
 EVENTS = ("complete", "replan", "prune", "pause")
 
-# Eq. 13's weight of U_act in U when nothing was calibrated (METHOD.md "AURD")
-DEFAULT_ETA = 0.7
 
-
-def dequantize(probs: np.ndarray, bin_centers: np.ndarray) -> np.ndarray:
-    """Eq. 12: a_bar[k, d] = sum_b p[k, d, b] * c_b (expectation over the bin centres)."""
+def dequantize(probs, bin_centers):
+    """Eq. 12: a_bar[k, d] = sum_b p[k, d, b] * c_b (expectation over the bin centres); NumPy arrays or
+    torch tensors (the policy calls it on the model's output before leaving torch)."""
     return _dequantize(probs, bin_centers)
 
 
@@ -50,6 +49,11 @@ def surprise(u_pred: float, episode_min: float | None) -> float:
     return max(0.0, float(u_pred) - episode_min)
 
 
+def combine_uncertainty(u_act, u_pred, eta: float = DEFAULT_ETA):
+    """Eq. 14: U = eta * U_act + (1 - eta) * U_pred, for scalars or arrays of per-step signals."""
+    return eta * u_act + (1.0 - eta) * u_pred
+
+
 def composite_uncertainty(continuous: np.ndarray, dequantized: np.ndarray, observed_latent: np.ndarray | None,
                           predicted_latent: np.ndarray | None, eta: float = DEFAULT_ETA) -> np.ndarray | float:
     """Eqs. 13-14: U = eta * U_act + (1 - eta) * U_pred.
@@ -59,7 +63,7 @@ def composite_uncertainty(continuous: np.ndarray, dequantized: np.ndarray, obser
     """
     u_act = action_uncertainty(continuous, dequantized)
     u_pred = prediction_uncertainty(observed_latent, predicted_latent)
-    out = eta * u_act + (1.0 - eta) * np.asarray(u_pred)
+    out = combine_uncertainty(u_act, np.asarray(u_pred), eta)
     return float(out) if np.ndim(out) == 0 else out
 
 
@@ -121,14 +125,3 @@ def adahorizon(mad: np.ndarray, min_exec: int = 4, extend_below: float = 0.03, r
     while h < len(mad) and mad[h] < extend_below:
         h += 1
     return h, "complete"
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
-    """Wilson score interval for a binomial proportion (95% by default)."""
-    if n == 0:
-        return 0.0, 1.0
-    p = successes / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return float(max(0.0, centre - half)), float(min(1.0, centre + half))

@@ -10,14 +10,13 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from pivla.data.format import DatasetError, Episode
 from pivla.data.normalize import ActionStats, NormStats, StandardStats
 from pivla.data.text import WordTokenizer
+from pivla.data.transforms import NormalizeActions, input_pipeline, proprio_vector
 from pivla.model.config import ModelConfig
-from pivla.model.tokenizer import encode
 
 
 def split_episodes(episodes: list[Episode], val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
@@ -38,29 +37,13 @@ def split_episodes(episodes: list[Episode], val_fraction: float, seed: int) -> t
     return sorted(train), sorted(val)
 
 
-def proprio_vector(obs: dict[str, np.ndarray], keys: tuple[str, ...]) -> np.ndarray:
-    """Concatenate the proprioceptive observation keys (time-major or single step)."""
-    try:
-        return np.concatenate([np.asarray(obs[k], np.float32) for k in keys], axis=-1)
-    except KeyError as e:
-        raise DatasetError(f"observation is missing proprio key {e.args[0]!r} (needed: {list(keys)})") from None
-
-
-def resize_images(images: np.ndarray, size: int) -> np.ndarray:
-    """(..., H, W, 3) uint8 -> (..., size, size, 3) uint8 with area interpolation (a no-op when equal)."""
-    if images.shape[-3] == size and images.shape[-2] == size:
-        return images
-    flat = images.reshape(-1, *images.shape[-3:])
-    out = np.stack([cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA) for im in flat])
-    return out.reshape(*images.shape[:-3], size, size, 3)
-
-
 def fit_norm_stats(episodes: list[Episode], cfg: ModelConfig) -> NormStats:
     actions = np.concatenate([ep.actions for ep in episodes])
     proprio = np.concatenate([proprio_vector(ep.obs, cfg.proprio_keys) for ep in episodes])
     if proprio.shape[-1] != cfg.proprio_dim:
         raise DatasetError(f"proprio keys {cfg.proprio_keys} give {proprio.shape[-1]} dims, config says {cfg.proprio_dim}")
-    return NormStats(action=ActionStats.fit(actions), proprio=StandardStats.fit(proprio))
+    layout = [(k, int(np.asarray(episodes[0].obs[k]).shape[-1])) for k in cfg.proprio_keys]
+    return NormStats(action=ActionStats.fit(actions), proprio=StandardStats.fit(proprio), proprio_layout=layout)
 
 
 @dataclass
@@ -77,23 +60,21 @@ class PreparedEpisode:
 
 
 def prepare_episode(ep: Episode, cfg: ModelConfig, stats: NormStats, text: WordTokenizer) -> PreparedEpisode:
-    missing = [c for c in cfg.cameras if c not in ep.obs]
-    if missing:
-        raise DatasetError(f"episode {ep.instruction!r} lacks camera(s) {missing} the policy uses")
-    images = np.stack([resize_images(ep.obs[c], cfg.image_size) for c in cfg.cameras], axis=1)
-    actions = stats.action.normalize(ep.actions)
-    if not np.isfinite(ep.actions).all():
-        raise DatasetError(f"episode {ep.instruction!r} has non-finite actions")
-    ids, mask = text.encode(ep.instruction)
+    """An episode through the same input pipeline the policy applies at inference, plus the action targets."""
+    try:
+        obs = input_pipeline(cfg, stats.proprio, text)({**ep.obs, "instruction": ep.instruction})
+        targets = NormalizeActions(stats.action, cfg.n_bins)({"actions": ep.actions})
+    except DatasetError as e:
+        raise DatasetError(f"episode {ep.instruction!r}: {e}") from None
     return PreparedEpisode(
-        images=images,
-        proprio=stats.proprio.normalize(proprio_vector(ep.obs, cfg.proprio_keys)).astype(np.float32),
-        actions=actions,
-        bins=encode(actions, cfg.n_bins),
+        images=obs["images"],
+        proprio=obs["proprio"],
+        actions=targets["actions"],
+        bins=targets["bins"],
         rewards=ep.rewards.astype(np.float32),
         dones=ep.dones.astype(np.float32),
-        text_ids=ids,
-        text_mask=mask,
+        text_ids=obs["text_ids"],
+        text_mask=obs["text_mask"],
         imitate=bool(ep.success),
     )
 

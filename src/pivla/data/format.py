@@ -185,11 +185,3 @@ def dataset_files(root: str | Path) -> list[Path]:
     if not files:
         raise DatasetError(f"{root}: no .hdf5 files found")
     return files
-
-
-def read_dataset(root: str | Path, obs_keys: tuple[str, ...] | None = None) -> list[Episode]:
-    """All episodes of all files below ``root``, in file order then demo order."""
-    episodes: list[Episode] = []
-    for path in dataset_files(root):
-        episodes.extend(read_episodes(path, obs_keys))
-    return episodes

@@ -67,10 +67,14 @@ class StandardStats:
 class NormStats:
     action: ActionStats
     proprio: StandardStats
+    # each proprio key with its length, in order (what a client must send); None in runs written before it
+    proprio_layout: list[tuple[str, int]] | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "NormStats":
-        return cls(action=ActionStats(**d["action"]), proprio=StandardStats(**d["proprio"]))
+        layout = d.get("proprio_layout")
+        return cls(action=ActionStats(**d["action"]), proprio=StandardStats(**d["proprio"]),
+                   proprio_layout=[(str(k), int(n)) for k, n in layout] if layout is not None else None)

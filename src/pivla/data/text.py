@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pivla.model.hf.text import HFTextTokenizer
+
 PAD, UNK = "<pad>", "<unk>"
 
 
@@ -53,8 +55,6 @@ def build_text_tokenizer(backbone: str, instructions: list[str], max_len: int, p
     """The instruction tokenizer a backbone needs: words from the data for ``small``; the checkpoint's own
     tokenizer (loaded from the local directory) for ``hf``. Both expose ``encode``/``to_dict``/``vocab``."""
     if backbone == "hf":
-        from pivla.model.hf import HFTextTokenizer
-
         return HFTextTokenizer.from_pretrained(path, max_len)
     return WordTokenizer.build(instructions, max_len)
 
@@ -62,7 +62,5 @@ def build_text_tokenizer(backbone: str, instructions: list[str], max_len: int, p
 def load_text_tokenizer(data: dict):
     """Inverse of ``tokenizer.to_dict()`` for either kind (``kind`` key; word tokenizers omit it)."""
     if data.get("kind") == "hf":
-        from pivla.model.hf import HFTextTokenizer
-
         return HFTextTokenizer.from_dict(data)
     return WordTokenizer.from_dict(data)

@@ -1,49 +1,162 @@
-"""Pure transforms between numpy samples and the model's tensors (kept out of the model itself)."""
+"""Pure transforms between observations and the model's inputs, kept out of the model itself.
+
+Each transform maps a dict to a new dict and works on one time step or on a whole episode alike (arrays
+are time-major, transforms only touch the trailing axes). ``input_pipeline`` composes them once; the training
+dataset (``pivla.data.dataset.prepare_episode``) and the policy (``pivla.policy.Policy``) both call it, so
+training and inference cannot drift apart. The policy's output steps (Eq. 12 de-quantization, Eq. 13, head
+selection, un-normalization) are in ``pivla.policy``.
+
+Torch is imported only by the two to-tensor functions. The picture functions (resize, check, pool, centre)
+are in ``pivla.model.pixels``.
+"""
 
 from __future__ import annotations
 
-import cv2
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
 import numpy as np
-import torch
+
+from pivla.data.format import DatasetError
+from pivla.data.normalize import ActionStats, StandardStats
+from pivla.model.pixels import check_image, resize_images
+from pivla.model.tokenizer import encode as bin_actions
+
+if TYPE_CHECKING:
+    import torch
+
+    from pivla.model.config import ModelConfig
 
 FLOAT_KEYS_UINT8_IMAGES = ("images", "sp_images")
 
+Sample = dict[str, Any]
 
+
+class Transform(Protocol):
+    def __call__(self, data: Mapping[str, Any]) -> Sample: ...
+
+
+class TextTokenizer(Protocol):
+    def encode(self, text: str) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def compose(transforms: Sequence[Transform]) -> Callable[[Mapping[str, Any]], Sample]:
+    """Apply ``transforms`` in order."""
+
+    def run(data: Mapping[str, Any]) -> Sample:
+        out = dict(data)
+        for t in transforms:
+            out = t(out)
+        return out
+
+    return run
+
+
+# -- input transforms --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class StackCameras:
+    """The cameras' pictures resized to the model's side and stacked: ``images`` (..., n_cam, S, S, 3) uint8."""
+
+    cameras: tuple[str, ...]
+    size: int
+
+    def __call__(self, data: Mapping[str, Any]) -> Sample:
+        missing = [c for c in self.cameras if c not in data]
+        if missing:
+            raise DatasetError(f"observation lacks camera(s) {missing} the policy uses (needs {list(self.cameras)})")
+        images = [resize_images(check_image(data[c], c), self.size) for c in self.cameras]
+        return {**data, "images": np.stack(images, axis=-4)}
+
+
+@dataclass(frozen=True)
+class ProprioVector:
+    """The proprioceptive keys concatenated in order: ``proprio`` (..., P), refused if missing or not finite."""
+
+    keys: tuple[str, ...]
+
+    def __call__(self, data: Mapping[str, Any]) -> Sample:
+        return {**data, "proprio": proprio_vector(data, self.keys)}
+
+
+def proprio_vector(obs: Mapping[str, Any], keys: Sequence[str]) -> np.ndarray:
+    """Concatenate the proprioceptive observation keys (time-major or single step)."""
+    try:
+        vec = np.concatenate([np.asarray(obs[k], np.float32) for k in keys], axis=-1)
+    except KeyError as e:
+        raise DatasetError(f"observation is missing proprio key {e.args[0]!r} (needed: {list(keys)})") from None
+    if not np.isfinite(vec).all():
+        bad = [k for k in keys if not np.isfinite(np.asarray(obs[k], np.float64)).all()]
+        raise DatasetError(f"observation {bad[0]!r} contains NaN or inf")
+    return vec
+
+
+@dataclass(frozen=True)
+class NormalizeProprio:
+    """Standardise ``proprio`` with the training set's statistics."""
+
+    stats: StandardStats
+    dim: int
+
+    def __call__(self, data: Mapping[str, Any]) -> Sample:
+        proprio = data["proprio"]
+        if proprio.shape[-1] != self.dim:
+            raise DatasetError(f"proprio has {proprio.shape[-1]} dims, the model reads {self.dim}")
+        return {**data, "proprio": self.stats.normalize(proprio).astype(np.float32)}
+
+
+@dataclass(frozen=True)
+class TokenizeInstruction:
+    """``instruction`` -> ``text_ids`` and ``text_mask`` (``prompt`` is accepted as its other name)."""
+
+    tokenizer: TextTokenizer
+
+    def __call__(self, data: Mapping[str, Any]) -> Sample:
+        text = data.get("instruction", data.get("prompt"))
+        if text is None:
+            raise DatasetError("observation is missing 'instruction'")
+        ids, mask = self.tokenizer.encode(str(text))
+        return {**data, "text_ids": ids, "text_mask": mask}
+
+
+@dataclass(frozen=True)
+class NormalizeActions:
+    """Training targets: ``actions`` normalized to [-1, 1] and their discrete ``bins`` (Eq. 4)."""
+
+    stats: ActionStats
+    n_bins: int
+
+    def __call__(self, data: Mapping[str, Any]) -> Sample:
+        raw = np.asarray(data["actions"])
+        if not np.isfinite(raw).all():
+            raise DatasetError("non-finite actions")
+        actions = self.stats.normalize(raw)
+        return {**data, "actions": actions, "bins": bin_actions(actions, self.n_bins)}
+
+
+def input_pipeline(cfg: ModelConfig, proprio_stats: StandardStats, text: TextTokenizer) -> Callable[[Mapping[str, Any]], Sample]:
+    """Observation -> model inputs (``images``, ``proprio``, ``text_ids``, ``text_mask``), as NumPy arrays."""
+    return compose([
+        StackCameras(tuple(cfg.cameras), cfg.image_size),
+        ProprioVector(tuple(cfg.proprio_keys)),
+        NormalizeProprio(proprio_stats, cfg.proprio_dim),
+        TokenizeInstruction(text),
+    ])
+
+
+# -- to tensors --------------------------------------------------------------------------------------------
 def images_to_tensor(images: np.ndarray, device: torch.device | str = "cpu") -> torch.Tensor:
     """(..., H, W, 3) uint8 -> (..., 3, H, W) float in [0, 1]."""
+    import torch
+
     t = torch.from_numpy(np.ascontiguousarray(images)).to(device)
     return t.movedim(-1, -3).float().div_(255.0)
 
 
-def area_downsample(images: np.ndarray, factor: int, out: np.ndarray | None = None) -> np.ndarray:
-    """(..., H, W, 3) uint8 -> (..., 3, H / factor, W / factor) float32 in [0, 1], each pixel the mean of a
-    ``factor`` x ``factor`` block: ``images_to_tensor`` then ``avg_pool2d(factor)``, without PyTorch.
-
-    AURD encodes every new observation, and this runs in front of the ONNX target graph on each one. OpenCV's
-    area resize at an integer factor is that block mean; for an 80-px picture it takes ~18 us where NumPy's
-    two-axis ``sum`` took ~220 us (docs/results.md, session 18). ``out``: a C-contiguous float32 array of the
-    result's shape to write into (the graph's bound input), instead of a new array.
-    """
-    *lead, h, w, c = images.shape
-    if h % factor or w % factor:
-        raise ValueError(f"area_downsample: factor {factor} must divide the image size {h}x{w}")
-    hs, ws = h // factor, w // factor
-    shape = (*lead, c, hs, ws)
-    if out is None:
-        out = np.empty(shape, np.float32)
-    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
-        raise ValueError(f"area_downsample: out must be a C-contiguous float32 array of shape {shape}, "
-                         f"got {out.dtype} {out.shape}")
-    for image, dst in zip(images.reshape(-1, h, w, c), out.reshape(-1, c, hs, ws)):
-        pooled = image.astype(np.float32)
-        if factor > 1:
-            pooled = cv2.resize(pooled, (ws, hs), interpolation=cv2.INTER_AREA).reshape(hs, ws, c)
-        np.multiply(pooled.transpose(2, 0, 1), np.float32(1.0 / 255.0), out=dst)
-    return out
-
-
-def batch_to_tensors(batch: dict[str, np.ndarray], device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+def batch_to_tensors(batch: Mapping[str, np.ndarray], device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
     """Collated numpy batch -> tensors on ``device``; uint8 images become float CHW."""
+    import torch
+
     out = {}
     for k, v in batch.items():
         if k in FLOAT_KEYS_UINT8_IMAGES:

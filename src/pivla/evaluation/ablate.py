@@ -11,16 +11,20 @@ seeds, calibrated on its own successful validation rollouts, and evaluated on th
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
-from pivla.control.math import wilson_interval
-from pivla.evaluation import protocol
-from pivla.evaluation.report import newcombe_difference
-from pivla.model.config import ModelConfig
-from pivla.training.checkpoint import atomic_write_bytes
+from pivla.control.calibrate import CalibrationConfig
+from pivla.control.executors import ExecutorConfig, executor_config
+from pivla.evaluation.protocol import calibrate_on_rollouts, validation_rollouts
+from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
+from pivla.evaluation.stats import compare, paired_successes, wilson_interval
+from pivla.io import atomic_write_bytes
+from pivla.training.config import TrainConfig, check_target_divides
 
 log = logging.getLogger(__name__)
 
@@ -41,71 +45,87 @@ INCREMENTAL: tuple[tuple[str, str, str], ...] = (
     ("+ unified loss (L_IL + alpha L_RL + beta L_SP)", "full", "fixed"),
     ("+ AURD (full PI-VLA)", "full", "aurd"),
 )
-# executor variants of the full model: name -> (executor, options)
-EXEC_VARIANTS: dict[str, tuple[str, dict]] = {
-    "aurd": ("aurd", {}),
-    "aurd_check_after": ("aurd", {"check": "after"}),
-    "fixed_h5": ("fixed", {"horizon": 5}),
-    "fixed_h8": ("fixed", {"horizon": 8}),
-    "ensemble": ("ensemble", {}),
-    "adahorizon": ("adahorizon", {}),
+# executor variants of the full model
+EXEC_VARIANTS: dict[str, ExecutorConfig] = {
+    "aurd": executor_config("aurd"),
+    "aurd_check_after": executor_config("aurd", check="after"),
+    "fixed_h5": executor_config("fixed", horizon=5),
+    "fixed_h8": executor_config("fixed", horizon=8),
+    "ensemble": executor_config("ensemble"),
+    "adahorizon": executor_config("adahorizon"),
 }
 
 
 @dataclass
 class AblationConfig:
+    """Every variant trained with the recipe on the same data and seed, calibrated on its own validation
+    rollouts, evaluated on the same test seeds."""
+
     data: str
+    """Training dataset."""
     val: str
+    """Validation demonstrations (calibration falls back to them when a variant's rollouts all fail)."""
     out: str
-    steps: int = protocol.STEPS  # the demo's training length and batch
-    batch_size: int = protocol.BATCH_SIZE
-    seed: int = 1000  # first test seed
+    """Directory of the ablation (runs/, eval/, ablation.md); an interrupted ablation resumes."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """Training of every variant (the recipe by default; data, out and seed are set per variant)."""
+    seed: int = 1000
+    """First test seed."""
     train_seed: int = 0
-    val_episodes: int = 5  # validation rollouts per task, for calibration
-    val_seed: int = 1  # the demo's validation seed (its validation demonstrations use the same)
-    pred_baseline: str = "episode"
-    env: str = "tabletop"
+    """Training seed of every variant."""
+    val_episodes: int = 5
+    """Validation rollouts per task, for calibration."""
+    val_seed: int = 1
+    """Seed of the validation rollouts (the demo's validation demonstrations use the same)."""
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    """AURD's calibration of every variant."""
+    env: Literal["tabletop", "libero"] = "tabletop"
+    """Environment family."""
     suite: str = "pick_place"
+    """Task suite."""
     tasks: str | None = None
+    """Task indices or names, comma-separated (default: all)."""
     episodes: int = 10
+    """Test episodes per task."""
     perturb: str | None = None
-    realism: str = "ideal"
+    """Twin perturbation spec of the test episodes."""
+    realism: Literal["ideal", "servo"] = "ideal"
+    """Twin actuation."""
     workers: int = 2
+    """Worker processes."""
     variants: tuple[str, ...] | None = None
-    max_steps: int | None = None  # per episode (default: the task's own limit)
-    model: ModelConfig | None = None  # default: the default policy
+    """Subset of the variants (default: all)."""
+    max_steps: int | None = None
+    """Step limit per episode (default: the task's own)."""
 
 
 def _train_and_calibrate(cfg: AblationConfig, name: str, loss_overrides: dict) -> Path:
-    from pivla.evaluation.protocol import calibrate_on_rollouts, train_config, validation_rollouts
     from pivla.training.trainer import train
 
     run = Path(cfg.out) / "runs" / name
     status = run / "status.json"
     if not (status.exists() and json.loads(status.read_text()).get("done")):
-        tc = train_config(cfg.data, str(run), cfg.steps, cfg.batch_size, cfg.train_seed, loss_overrides,
-                          progress=False, model=cfg.model)
+        tc = dataclasses.replace(cfg.train, data=cfg.data, out=str(run), seed=cfg.train_seed, progress=False,
+                                 loss=dataclasses.replace(cfg.train.loss, **loss_overrides))
         train(tc, resume=(run / "checkpoints").exists())
     rollouts, rollouts_eval = Path(cfg.out) / "val_rollouts" / name, Path(cfg.out) / "val_rollouts_eval" / name
     if not (rollouts_eval / "results.json").exists():
         validation_rollouts(run, rollouts, rollouts_eval, cfg.val_episodes, cfg.val_seed, cfg.realism, cfg.workers,
                             cfg.env, cfg.suite, cfg.tasks, cfg.max_steps)
     if not (run / "calibration.json").exists():
-        calibrate_on_rollouts(run, rollouts, Path(cfg.val), cfg.pred_baseline)
+        calibrate_on_rollouts(run, rollouts, Path(cfg.val), cfg.calibration)
     return run
 
 
-def _evaluate(cfg: AblationConfig, run: Path, name: str, executor: str, options: dict) -> dict:
+def _evaluate(cfg: AblationConfig, run: Path, name: str, executor: ExecutorConfig) -> dict:
     """Evaluate (or reuse a finished evaluation: an interrupted ablation continues where it stopped)."""
-    from pivla.evaluation.runner import EvalConfig, evaluate
-
     out = Path(cfg.out) / "eval" / name
     if (out / "results.json").exists():
-        return json.loads((out / "results.json").read_text())
+        return {**json.loads((out / "results.json").read_text()), "dir": str(out)}
     ec = EvalConfig(policy=str(run), out=str(out), env=cfg.env, suite=cfg.suite, tasks=cfg.tasks, executor=executor,
                     episodes=cfg.episodes, seed=cfg.seed, perturb=cfg.perturb, realism=cfg.realism,
-                    workers=cfg.workers, videos=0, max_steps=cfg.max_steps, executor_options=options)
-    return evaluate(ec, progress=False)
+                    workers=cfg.workers, videos=0, max_steps=cfg.max_steps)
+    return {**evaluate(ec, progress=False), "dir": str(out)}
 
 
 def _rate(r: dict) -> str:
@@ -114,11 +134,14 @@ def _rate(r: dict) -> str:
 
 
 def _diff(r: dict, ref: dict | None) -> str:
-    """Difference in points to the reference row with its Newcombe 95% interval."""
+    """Difference in points to the reference row, paired over the same test episodes: Newcombe's method 10
+    95% interval and the exact McNemar p."""
     if ref is None or r is ref:
         return ""
-    d, lo, hi = newcombe_difference(r["successes"], r["episodes"], ref["successes"], ref["episodes"])
-    return f"{100 * d:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}]"
+    cmp = compare(*paired_successes(load_rows(Path(r["dir"]) / "episodes.jsonl"),
+                                    load_rows(Path(ref["dir"]) / "episodes.jsonl")))
+    lo, hi = cmp["ci95"]
+    return f"{100 * cmp['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] (p {cmp['p_mcnemar']:.2g})"
 
 
 def _model_row(name: str, aurd: dict, fixed: dict, ref: dict | None) -> str:
@@ -135,24 +158,26 @@ def run_ablation(cfg: AblationConfig) -> str:
     wanted = set(cfg.variants or (*TRAIN_VARIANTS, *EXEC_VARIANTS))
     unknown = wanted - set(TRAIN_VARIANTS) - set(EXEC_VARIANTS)
     if unknown:
-        raise SystemExit(f"unknown ablation variants {sorted(unknown)}; known: {sorted({*TRAIN_VARIANTS, *EXEC_VARIANTS})}")
+        raise ValueError(f"unknown ablation variants {sorted(unknown)}; known: {sorted({*TRAIN_VARIANTS, *EXEC_VARIANTS})}")
+    check_target_divides(cfg.train.model)
     models: dict[str, tuple[dict, dict]] = {}  # variant -> (AURD, fixed H=5) results
     for name, (_, overrides) in TRAIN_VARIANTS.items():
         if name in wanted or (name == "full" and wanted & set(EXEC_VARIANTS)):
             log.info("[ablate] %s: train + calibrate", name)
             run = _train_and_calibrate(cfg, name, overrides)
             if name in wanted:  # fixed horizon too: the model's quality apart from AURD's signals
-                models[name] = (_evaluate(cfg, run, f"model_{name}", "aurd", {}),
-                                _evaluate(cfg, run, f"model_{name}_fixed_h5", "fixed", {"horizon": 5}))
+                models[name] = (_evaluate(cfg, run, f"model_{name}", EXEC_VARIANTS["aurd"]),
+                                _evaluate(cfg, run, f"model_{name}_fixed_h5", EXEC_VARIANTS["fixed_h5"]))
     full_run = Path(cfg.out) / "runs" / "full"
     execs: dict[str, dict] = {}
-    for name, (executor, options) in EXEC_VARIANTS.items():
+    for name, executor in EXEC_VARIANTS.items():
         if name in wanted:
             log.info("[ablate] full model with %s", name)
-            execs[name] = _evaluate(cfg, full_run, f"exec_{name}", executor, options)
+            execs[name] = _evaluate(cfg, full_run, f"exec_{name}", executor)
     lines = [f"# Ablations ({cfg.env}/{cfg.suite}, {cfg.episodes} episodes per task, perturb={cfg.perturb}, "
-             f"{cfg.steps} training steps of {cfg.batch_size}, training seed {cfg.train_seed}, test seed {cfg.seed})",
-             "", "Success with 95% Wilson intervals; differences in points with Newcombe 95% intervals.", ""]
+             f"{cfg.train.steps} training steps of {cfg.train.batch_size}, training seed {cfg.train_seed}, test seed {cfg.seed})",
+             "", "Success with 95% Wilson intervals; differences in points, paired over the same test episodes "
+             "(Newcombe's method 10 95% interval, exact McNemar p).", ""]
     model_header = ["| variant | AURD | fixed H=5 | AURD - full | episodes | AURD mean horizon |", "|---|---|---|---|---|---|"]
     ref = models.get("full", (None, None))[0]
     for title, keys in [("Table 4: action heads", ["full", "discrete_only", "continuous_only"]),

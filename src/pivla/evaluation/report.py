@@ -8,50 +8,16 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import re
 from pathlib import Path
 
 import numpy as np
 
-from pivla.control.math import wilson_interval
 from pivla.evaluation.runner import load_rows
-from pivla.training.checkpoint import atomic_write_bytes
+from pivla.evaluation.stats import compare, paired_successes
+from pivla.io import atomic_write_bytes
 
 log = logging.getLogger(__name__)
-
-
-def newcombe_difference(s1: int, n1: int, s2: int, n2: int) -> tuple[float, float, float]:
-    """Difference p1 - p2 with Newcombe's hybrid-score 95% interval (from the two Wilson intervals)."""
-    p1, p2 = s1 / n1, s2 / n2
-    l1, u1 = wilson_interval(s1, n1)
-    l2, u2 = wilson_interval(s2, n2)
-    d = p1 - p2
-    return d, d - np.sqrt((p1 - l1) ** 2 + (u2 - p2) ** 2), d + np.sqrt((u1 - p1) ** 2 + (p2 - l2) ** 2)
-
-
-def paired_outcomes(rows_a: list[dict], rows_b: list[dict]) -> dict[str, int]:
-    """Two executors on the same test episodes (same task, episode index and seed), counted as pairs: both
-    succeeded, only A, only B, neither. Raises if the two runs did not play the same episodes."""
-    a = {(r["task_index"], r["episode"]): r for r in rows_a}
-    b = {(r["task_index"], r["episode"]): r for r in rows_b}
-    if a.keys() != b.keys() or any(a[k]["seed"] != b[k]["seed"] for k in a):
-        raise ValueError("the two evaluations did not run the same episodes (tasks, episode indices or seeds differ)")
-    out = {"both": 0, "a_only": 0, "b_only": 0, "neither": 0}
-    for k in a:
-        sa, sb = bool(a[k]["success"]), bool(b[k]["success"])
-        out["both" if sa and sb else "a_only" if sa else "b_only" if sb else "neither"] += 1
-    return out
-
-
-def mcnemar_exact_p(a_only: int, b_only: int) -> float:
-    """Two-sided exact McNemar test: under "the executors are equally good" each discordant pair is a fair
-    coin, so the p-value is the binomial tail of the rarer kind, doubled (capped at 1)."""
-    n = a_only + b_only
-    if n == 0:
-        return 1.0
-    tail = sum(math.comb(n, i) for i in range(min(a_only, b_only) + 1)) / 2 ** n
-    return min(1.0, 2.0 * tail)
 
 
 def find_evaluations(root: Path) -> dict[tuple[str, str], Path]:
@@ -197,20 +163,21 @@ def write_report(root: str | Path) -> Path:
             cells.append(f"{100 * r['success_rate']:.1f}% [{100 * r['ci95'][0]:.0f}, {100 * r['ci95'][1]:.0f}] (n={r['episodes']})"
                          if r else "-")
         lines.append(f"| {c} | " + " | ".join(cells) + " |")
-    lines += ["", "## AURD minus fixed horizon (Newcombe 95% interval; same test seeds)", ""]
+    lines += ["", "## Each executor against AURD, episode by episode", "",
+              "Same test episodes (same seeds) for every executor: the difference in success is paired (Newcombe's "
+              "method 10 95% interval) and tested with the exact McNemar test on the discordant episodes.", "",
+              "| condition | AURD vs | AURD | other | only AURD | only other | AURD - other (points) | McNemar p |",
+              "|---|---|---|---|---|---|---|---|"]
     for c in conditions:
-        a, f = results.get((c, "aurd")), results.get((c, "fixed"))
-        if a and f:
-            d, lo, hi = newcombe_difference(a["successes"], a["episodes"], f["successes"], f["episodes"])
-            lines.append(f"- {c}: {100 * d:+.1f} points [{100 * lo:+.1f}, {100 * hi:+.1f}]")
-    lines += ["", "## AURD against fixed horizon, episode by episode (same test episodes; exact McNemar test)", "",
-              "| condition | both succeed | only AURD | only fixed | neither | p |", "|---|---|---|---|---|---|"]
-    for c in conditions:
-        if (c, "aurd") in evals and (c, "fixed") in evals:
-            pairs = paired_outcomes(load_rows(evals[(c, "aurd")] / "episodes.jsonl"),
-                                    load_rows(evals[(c, "fixed")] / "episodes.jsonl"))
-            p = mcnemar_exact_p(pairs["a_only"], pairs["b_only"])
-            lines.append(f"| {c} | {pairs['both']} | {pairs['a_only']} | {pairs['b_only']} | {pairs['neither']} | {p:.2f} |")
+        for e in executors:
+            if e == "aurd" or (c, "aurd") not in evals or (c, e) not in evals:
+                continue
+            cmp = compare(*paired_successes(load_rows(evals[(c, "aurd")] / "episodes.jsonl"),
+                                            load_rows(evals[(c, e)] / "episodes.jsonl")))
+            lo, hi = cmp["ci95"]
+            lines.append(f"| {c} | {e} | {cmp['successes_a']}/{cmp['n']} | {cmp['successes_b']}/{cmp['n']} | "
+                         f"{cmp['b']} | {cmp['c']} | {100 * cmp['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] | "
+                         f"{cmp['p_mcnemar']:.3g} |")
     lines += ["", "## Execution statistics", "", "| condition | executor | mean horizon | replans | prunes | pauses | plans | control Hz |",
               "|---|---|---|---|---|---|---|---|"]
     for (c, e), r in sorted(results.items()):

@@ -16,13 +16,17 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
-from pivla.control.math import DEFAULT_ETA, wilson_interval
+from pivla.control.contract import DEFAULT_ETA
+from pivla.control.executors import AURDConfig, ExecutorConfig, config_to_dict, make_executor
+from pivla.envs import seeds
 from pivla.envs.rollout import episode_seed
-from pivla.training.checkpoint import atomic_write_json, read_json
+from pivla.evaluation.stats import wilson_interval
+from pivla.io import atomic_write_json, read_json
+from pivla.serving.client import open_policy
 
 log = logging.getLogger(__name__)
 PARTS_DIR = ".parts"  # one file per recorded episode, merged per task at the end; hidden from dataset readers
@@ -30,28 +34,60 @@ PARTS_DIR = ".parts"  # one file per recorded episode, merged per task at the en
 
 @dataclass
 class EvalConfig:
+    """One evaluation: a policy, an executor, a task suite, seeded episodes."""
+
     policy: str
+    """Run directory, or ws://HOST:PORT of a served policy."""
     out: str
-    env: str = "tabletop"
+    """Directory for results.json, episodes.jsonl, traces/ and videos/ (an interrupted evaluation resumes)."""
+    env: Literal["tabletop", "libero"] = "tabletop"
+    """The simulated twin, or LIBERO."""
     suite: str = "pick_place"
+    """Task suite (tabletop: pick_place, pick_place_seen, pick_place_unseen, drawer, stack, long; libero:
+    libero_spatial, libero_object, libero_goal, libero_10, ...)."""
     tasks: str | None = None
-    executor: str = "aurd"
-    episodes: int = 10  # per task
+    """Task indices or names, comma-separated (default: all)."""
+    executor: ExecutorConfig = field(default_factory=AURDConfig)
+    """How chunks become actions: --executor aurd | fixed | ensemble | adahorizon, then its options
+    (e.g. --executor fixed --executor.horizon 3)."""
+    episodes: int = 10
+    """Episodes per task."""
     seed: int = 1000
+    """Base seed of the episodes when no seed family is given (legacy seeds)."""
+    seed_family: Literal["train", "validation", "test", "holdout"] | None = None
+    """Seed the episodes from this family (pivla.envs.seeds: disjoint by construction, one use each) with
+    ``condition``; the split must agree (validation rollouts: validation; test: test or holdout)."""
+    condition: str | None = None
+    """The condition's code in the seed family (pivla.envs.seeds.CONDITIONS), e.g. in_distribution."""
     perturb: str | None = None
-    realism: str = "ideal"
+    """Twin perturbation spec, e.g. unseen_env,static_distractors,level=3 (docs/twin.md)."""
+    realism: Literal["ideal", "servo"] = "ideal"
+    """Twin actuation: ideal, or hobby-servo backlash, deadband and noise."""
     workers: int = 1
-    videos: int = 2  # episodes with an MP4 (the first ones of the first tasks)
+    """Worker processes (results do not depend on it)."""
+    videos: int = 2
+    """Episodes with an MP4 (the first ones of the first tasks)."""
     max_steps: int | None = None
-    executor_options: dict = field(default_factory=dict)
-    record: str | None = None  # directory to write every rollout (with success and rewards) as a dataset
-    # LIBERO: episode e starts from official init state first_init_state + e (mod 50), whatever the worker,
-    # so the test states are known and can be kept apart from the states demonstrations were collected on
+    """Step limit per episode (default: the task's)."""
+    record: str | None = None
+    """Also write every rollout (with success and rewards) into this dataset directory."""
     first_init_state: int = 0
-    # "validation": rollouts thresholds are calibrated on; "train": rollouts to train on (pivla collect --policy);
-    # reports show "test" only, and pivla calibrate refuses recorded "test" episodes
-    split: str = "test"
-    gripper_head: str | None = None  # None: the policy's default (pivla.policy.Policy)
+    """LIBERO: episode e starts from official init state first_init_state + e (mod 50), whatever the worker."""
+    libero_init: Literal["official", "random"] = "official"
+    """LIBERO: official init states (the benchmark's protocol), or scenes sampled from the task's placement
+    regions with the episode's seed (validation rollouts, which must not reuse the official states)."""
+    split: Literal["test", "validation", "train"] = "test"
+    """validation: rollouts thresholds are calibrated on; train: rollouts to train on; reports show test only,
+    and pivla calibrate refuses recorded test episodes."""
+    gripper_head: Literal["continuous", "discrete"] | None = None
+    """Head that drives the gripper (default: the discrete one when both were trained)."""
+    api_key: str | None = None
+    """API key of a served policy (ws://...)."""
+
+
+def config_dict(cfg: EvalConfig) -> dict[str, Any]:
+    """The evaluation's settings as JSON, the executor with its name."""
+    return {**asdict(cfg), "executor": config_to_dict(cfg.executor)}
 
 
 def eval_threads(workers: int) -> int:
@@ -66,6 +102,16 @@ def job_seed(seed: int, task_index: int, episode: int) -> int:
     return episode_seed(seed, task_index * 100_003 + episode)
 
 
+FAMILY_OF_SPLIT = {"train": ("train",), "validation": ("validation",), "test": ("test", "holdout")}
+
+
+def episode_seed_of(cfg: EvalConfig, task_index: int, task_name: str, episode: int) -> int:
+    """The seed of one episode: from the seed family when one is given, else the legacy (seed, task, episode)."""
+    if cfg.seed_family is not None:
+        return seeds.seed_for(cfg.seed_family, cfg.condition or "", task_name, episode)
+    return job_seed(cfg.seed, task_index, episode)
+
+
 # -- worker side ------------------------------------------------------------------------------------------
 _STATE: dict[str, Any] = {}
 
@@ -75,14 +121,12 @@ def _init_worker(cfg: EvalConfig, threads: int) -> None:
     Pool initializer would make the pool respawn workers forever instead of reporting it."""
     import torch
 
-    from pivla import load_policy
-
     torch.set_num_threads(threads)
     _STATE["cfg"] = cfg
     _STATE["envs"] = {}
     try:
-        _STATE["policy"] = load_policy(cfg.policy, device="cpu" if not torch.cuda.is_available() else "auto",
-                                       gripper_head=cfg.gripper_head)
+        _STATE["policy"] = open_policy(cfg.policy, cfg.api_key, gripper_head=cfg.gripper_head,
+                                       device="cpu" if not torch.cuda.is_available() else "auto")
     except Exception as e:  # noqa: BLE001 - re-raised with context in _run_job
         _STATE["error"] = f"{type(e).__name__}: {e}"
 
@@ -92,7 +136,7 @@ def _env(task_index: int) -> Any:
 
     cfg, policy = _STATE["cfg"], _STATE["policy"]
     if task_index not in _STATE["envs"]:
-        kw: dict[str, Any] = {"image_size": policy.cfg.image_size, "cameras": tuple(policy.cfg.cameras)}
+        kw: dict[str, Any] = {"image_size": policy.spec.image_size, "cameras": tuple(policy.spec.cameras)}
         if cfg.env == "tabletop":
             kw.update(realism=cfg.realism, perturb=cfg.perturb)
         _STATE["envs"][task_index] = make_env(cfg.env, cfg.suite, task_index, **kw)
@@ -100,25 +144,36 @@ def _env(task_index: int) -> Any:
 
 
 def _run_job(job: tuple[int, str, int, bool]) -> dict:
-    from pivla.control import make_executor, run_episode
+    from pivla.control import run_episode
 
     if "error" in _STATE:
         raise RuntimeError(f"evaluation worker could not load the policy: {_STATE['error']}")
     task_index, task_name, episode, keep_frames = job
     cfg, policy = _STATE["cfg"], _STATE["policy"]
-    seed = job_seed(cfg.seed, task_index, episode)
+    seed = episode_seed_of(cfg, task_index, task_name, episode)
     t0 = time.perf_counter()
-    options = {"init_state": cfg.first_init_state + episode} if cfg.env == "libero" else None
-    result = run_episode(_env(task_index), policy, make_executor(cfg.executor, **cfg.executor_options), seed=seed,
+    options = None
+    if cfg.env == "libero":
+        options = ({"init": "random", "seed": seed} if cfg.libero_init == "random"
+                   else {"init_state": cfg.first_init_state + episode})
+    result = run_episode(_env(task_index), policy, make_executor(cfg.executor), seed=seed,
                          max_steps=cfg.max_steps, keep_episode=keep_frames or cfg.record is not None,
                          reset_options=options)
     row = {"task": task_name, "task_index": task_index, "episode": episode, **(options or {}), **result.summary(),
-           "wall_s": time.perf_counter() - t0, "encoder_runtime": policy.encoder_runtime, "trace": result.trace,
+           "wall_s": time.perf_counter() - t0, "encoder_runtime": getattr(policy, "encoder_runtime", "client"), "trace": result.trace,
            "plan_events": result.plans}
+    perturber = getattr(_env(task_index), "perturber", None)
+    if perturber is not None:  # twin: the mid-episode events that fired (displacement, push), with their steps
+        row["perturb_events"] = [{k: _plain(v) for k, v in ev.items()} for ev in perturber.events]
     if result.episode is not None:
         row["_episode"] = result.episode
         row["_video"] = keep_frames
     return row
+
+
+def _plain(value: Any) -> Any:
+    """A JSON-able copy of an event field (arrays become lists)."""
+    return np.asarray(value).tolist() if isinstance(value, (np.ndarray, np.generic)) else value
 
 
 # -- aggregation ------------------------------------------------------------------------------------------
@@ -181,8 +236,8 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict
         "successes": succ,
         "episodes": n,
         "per_task": per_task,
-        "executor": cfg.executor,
-        "executor_options": cfg.executor_options,
+        "executor": cfg.executor.kind,
+        "executor_options": asdict(cfg.executor),
         "env": cfg.env, "suite": cfg.suite, "perturb": cfg.perturb, "realism": cfg.realism, "seed": cfg.seed,
         "policy": cfg.policy, "split": cfg.split,
         "mean_executed_horizon": float(np.mean(horizons)) if horizons else 0.0,
@@ -198,6 +253,8 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict
         "encoder_runtime": ",".join(sorted({r["encoder_runtime"] for r in rows if "encoder_runtime" in r})) or None,
         "failure_prediction": failure_prediction(rows, tau_high),
         "failure_stages": failure_stages(rows),
+        # episodes in which a mid-episode perturbation actually fired (a small displacement can come too late)
+        "perturbed_episodes": sum(bool(r.get("perturb_events")) for r in rows),
     }
 
 
@@ -236,8 +293,8 @@ def _check_resumable(path: Path, cfg: EvalConfig) -> None:
     the merged results would mean nothing. Fields missing from an older file count as their defaults."""
     if not path.exists():
         return
-    before = asdict(EvalConfig(policy="", out="")) | read_json(path)
-    now = asdict(cfg)
+    before = config_dict(EvalConfig(policy="", out="")) | read_json(path)
+    now = config_dict(cfg)
     changed = sorted(k for k in now if k not in _RESUME_FREE and before.get(k) != now[k])
     if changed:
         diff = ", ".join(f"{k}: {before.get(k)!r} -> {now[k]!r}" for k in changed)
@@ -248,12 +305,16 @@ def _check_resumable(path: Path, cfg: EvalConfig) -> None:
 def _check_settings(cfg: EvalConfig) -> None:
     """Reject executor options and perturbation specs that the episode jobs would trip over, before anything
     is written."""
-    from pivla.control import make_executor
-
     try:
-        make_executor(cfg.executor, **cfg.executor_options)
+        make_executor(cfg.executor)
     except (TypeError, ValueError) as e:
-        raise SystemExit(f"executor {cfg.executor!r} with options {cfg.executor_options}: {e}") from e
+        raise SystemExit(f"executor {cfg.executor}: {e}") from e
+    if cfg.seed_family is not None:
+        if cfg.seed_family not in FAMILY_OF_SPLIT[cfg.split]:
+            raise SystemExit(f"seed family {cfg.seed_family!r} cannot give {cfg.split} episodes (allowed: "
+                             f"{', '.join(FAMILY_OF_SPLIT[cfg.split])})")
+        if cfg.condition not in seeds.CONDITIONS:
+            raise SystemExit(f"--condition {cfg.condition!r}: with a seed family, one of {sorted(seeds.CONDITIONS)}")
     if cfg.env == "tabletop" and cfg.perturb:
         from pivla.envs.tabletop.perturb import parse_perturb
 
@@ -263,13 +324,14 @@ def _check_settings(cfg: EvalConfig) -> None:
             raise SystemExit(f"--perturb {cfg.perturb!r}: {e}") from e
 
 
-def evaluation_thresholds(calibration: Any, options: dict) -> dict | None:
-    """AURD's tau_low, tau_high, V_thresh and eta for this evaluation (``--option`` overrides the calibration),
+def evaluation_thresholds(calibration: Any, executor: ExecutorConfig) -> dict | None:
+    """AURD's tau_low, tau_high, V_thresh and eta for this evaluation (the executor's options override the calibration),
     kept in results.json so that a report draws the thresholds the traces were judged by; None when the
     policy is uncalibrated and no override gives all of them."""
     keys = ("tau_low", "tau_high", "v_thresh", "eta")
     base = {k: getattr(calibration, k) for k in keys} if calibration is not None else {"eta": DEFAULT_ETA}
-    out = base | {k: float(options[k]) for k in keys if k in options}
+    options = asdict(executor)
+    out = base | {k: float(options[k]) for k in keys if options.get(k) is not None}
     return out if all(k in out for k in keys) else None
 
 
@@ -277,25 +339,27 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     """Run (or resume) an evaluation; writes results.json, episodes.jsonl, traces/ and videos/ in ``cfg.out``."""
     from tqdm import tqdm
 
-    from pivla import load_policy
     from pivla.envs import select_tasks
 
     _check_settings(cfg)
     out = Path(cfg.out)
     tasks = select_tasks(cfg.env, cfg.suite, cfg.tasks)
     (out / "traces").mkdir(parents=True, exist_ok=True)
-    policy = load_policy(cfg.policy, device="cpu", gripper_head=cfg.gripper_head)
-    if cfg.executor == "aurd" and policy.calibration is None and not {"tau_low", "tau_high", "v_thresh"} <= set(cfg.executor_options):
+    if cfg.policy.startswith(("ws://", "wss://")) and cfg.gripper_head is not None:
+        raise SystemExit("--gripper-head chooses a local policy's head; a served policy uses the server's choice")
+    policy = open_policy(cfg.policy, cfg.api_key, device="cpu", gripper_head=cfg.gripper_head)
+    given = {k for k, v in asdict(cfg.executor).items() if v is not None}
+    if cfg.executor.kind == "aurd" and policy.calibration is None and not {"tau_low", "tau_high", "v_thresh"} <= given:
         raise SystemExit(f"{cfg.policy}: not calibrated; run `pivla calibrate --policy {cfg.policy} --data VAL` first")
-    thresholds = evaluation_thresholds(policy.calibration, cfg.executor_options)
+    thresholds = evaluation_thresholds(policy.calibration, cfg.executor)
     tau_high = thresholds["tau_high"] if thresholds else None
-    gripper_head = policy.gripper_head
+    gripper_head = getattr(policy, "gripper_head", None)
     del policy
     log_path = out / "episodes.jsonl"
     done = {_key(r): r for r in load_rows(log_path)}
     if done:
         _check_resumable(out / "eval_config.json", cfg)
-    atomic_write_json(out / "eval_config.json", asdict(cfg))
+    atomic_write_json(out / "eval_config.json", config_dict(cfg))
     jobs = []
     for ti, spec in enumerate(tasks):
         for j in range(cfg.episodes):
@@ -305,7 +369,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
         log.info("resuming: %d episodes already done, %d to go", len(done), len(jobs))
     workers = max(1, min(cfg.workers, len(jobs)))
     threads = eval_threads(workers)
-    bar = tqdm(total=len(jobs), desc=f"eval {cfg.executor}", unit="ep", disable=not progress, leave=False)
+    bar = tqdm(total=len(jobs), desc=f"eval {cfg.executor.kind}", unit="ep", disable=not progress, leave=False)
     with open(log_path, "a") as logf:
         def consume(row: dict) -> None:
             ep, video = row.pop("_episode", None), row.pop("_video", False)

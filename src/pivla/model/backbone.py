@@ -11,21 +11,12 @@ its own target encoder (the default) also exposes ``vision`` with ``pooled(image
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 from torch import nn
 
 from pivla.model.config import ModelConfig
-
-
-def centre(images: torch.Tensor | np.ndarray, inplace: bool = False) -> torch.Tensor | np.ndarray:
-    """[0, 1] pixels -> [-1, 1], the CNN's input convention (tensors or arrays: AURD's ONNX path applies it in
-    NumPy in front of the graph, ``inplace`` in the graph's bound input)."""
-    if inplace:
-        images *= 2.0
-        images -= 1.0
-        return images
-    return images * 2.0 - 1.0
+from pivla.model.hf.backbone import HFBackbone
+from pivla.model.pixels import centre
 
 
 class ConvEncoder(nn.Module):
@@ -196,7 +187,5 @@ def build_backbone(cfg: ModelConfig, vocab_size: int) -> nn.Module:
     if cfg.backbone.name == "small":
         return SmallBackbone(cfg, vocab_size)
     if cfg.backbone.name == "hf":
-        from pivla.model.hf import HFBackbone
-
         return HFBackbone(cfg)
     raise ValueError(f"unknown backbone {cfg.backbone.name!r}; choose 'small' or 'hf'")

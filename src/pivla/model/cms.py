@@ -13,6 +13,7 @@ from torch import nn
 
 from pivla.model.backbone import build_backbone
 from pivla.model.config import ModelConfig
+from pivla.model.dinov2 import Dinov2Encoder
 from pivla.model.tokenizer import bin_centers
 
 
@@ -183,8 +184,6 @@ def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder
             encoder.truncate(tc.stages)
         return TargetEncoder(encoder, tc.name, tc.ema_decay, tc.cameras, tc.downsample)
     if tc.name == "dinov2":
-        from pivla.model.dinov2 import Dinov2Encoder
-
         return TargetEncoder(Dinov2Encoder(tc.path, cfg.image_size), "frozen", tc.ema_decay, tc.cameras)
     if tc.name == "thumbnail":
         return TargetEncoder(Thumbnail(tc.grid), "frozen", tc.ema_decay, tc.cameras)

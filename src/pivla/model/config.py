@@ -1,76 +1,110 @@
-"""Configuration of the CMS model (paper Eqs. 3-7). One dataclass per component."""
+"""Configuration of the CMS model (paper Eqs. 3-7). One dataclass per component; no torch import, so the
+command line builds its help from these without loading the model."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 
 @dataclass
 class BackboneConfig:
     """Which backbone produces h_cog and h_mot. ``small``: CPU-friendly, trained from scratch;
-    ``hf``: a local Hugging Face vision-language model with LoRA (see pivla.model.hf)."""
+    ``hf``: a local Hugging Face vision-language model with LoRA (pivla.model.hf)."""
 
-    name: str = "small"
+    name: Literal["small", "hf"] = "small"
+    """small: CNN + transformer trained from scratch; hf: a local VLM checkpoint with LoRA."""
     d_model: int = 128
+    """Width of the small backbone's transformer."""
     n_layers: int = 3
+    """Transformer layers of the small backbone."""
     n_heads: int = 4
+    """Attention heads of the small backbone."""
     ff_mult: int = 2
+    """Feed-forward width as a multiple of d_model."""
     n_cog_tokens: int = 4
+    """Learned query tokens that become h_cog."""
     vision_channels: tuple[int, ...] = (32, 64, 128, 128)
-    # spatial-softmax keypoints per camera, read from CNN stage `keypoint_stage` (0 = off): explicit
-    # image coordinates of learned features, which a policy needs to localise small objects quickly
+    """Channels of the CNN stages (each halves the resolution)."""
     keypoints: int = 64
-    keypoint_stage: int = -2  # which CNN stage the keypoints read (-2: 12x12 at 96 px, -3: 24x24)
-    res_blocks: tuple[int, ...] = ()  # residual convolutions per CNN stage (empty = none)
-    # one token per cell of the last CNN grid (True) or one pooled token per camera (False): with keypoints
-    # carrying the coordinates, the pooled token cuts the transformer's sequence from ~100 tokens to ~30
+    """Spatial-softmax keypoints per camera (0: off): explicit image coordinates of learned features, which a
+    policy needs to localise small objects quickly."""
+    keypoint_stage: int = -2
+    """CNN stage the keypoints read (-2: 12x12 at 96 px, -3: 24x24)."""
+    res_blocks: tuple[int, ...] = ()
+    """Residual convolutions per CNN stage (empty: none)."""
     grid_tokens: bool = False
+    """One token per cell of the last CNN grid instead of one pooled token per camera: with keypoints
+    carrying the coordinates, pooled tokens cut the sequence from ~100 tokens to ~30."""
     dropout: float = 0.0
-    # hf backbone
+    """Dropout in the transformer."""
     path: str = ""
+    """hf: local checkpoint directory (Llava-style or a converted OpenVLA)."""
     lora_rank: int = 32
+    """hf: LoRA rank."""
     lora_alpha: int = 16
+    """hf: LoRA alpha."""
     lora_dropout: float = 0.0
+    """hf: LoRA dropout."""
     lora_target_modules: tuple[str, ...] = ("q_proj", "k_proj", "v_proj", "o_proj")
+    """hf: module names LoRA adapts."""
     gradient_checkpointing: bool = False
-    dtype: str = "auto"  # base weights: auto = bf16 on a bf16-capable GPU, else float32
+    """hf: recompute activations in the backward pass (memory for time)."""
+    dtype: str = "auto"
+    """hf: dtype of the base weights (auto: bf16 on a bf16-capable GPU, else float32)."""
 
 
 @dataclass
 class TargetEncoderConfig:
-    """Frozen target encoder for L_SP and AURD's U_pred. ``ema``: exponential moving average of the
-    policy's own vision encoder; ``frozen``: a frozen copy of it at initialisation; ``dinov2``: a local
-    DINOv2 checkpoint (``path``); ``thumbnail``: the image average-pooled to ``grid`` x ``grid`` cells, no
-    weights (cheap enough to run after every action: AURD's per-step overhead)."""
+    """The frozen target encoder of L_SP and of AURD's U_pred."""
 
-    name: str = "ema"
+    name: Literal["ema", "frozen", "dinov2", "thumbnail"] = "ema"
+    """ema: moving average of the policy's vision encoder; frozen: a frozen copy at initialisation; dinov2: a
+    local DINOv2 checkpoint (path); thumbnail: the picture pooled to grid x grid cells, no weights."""
     ema_decay: float = 0.995
+    """ema: decay per training step."""
     path: str = ""
-    grid: int = 12  # thumbnail cells per side
-    # how many of the policy's cameras (leading ones; the agent view first) the latent describes. One by
-    # default: AURD encodes every new observation, and the scene camera carries the task state.
+    """dinov2: local checkpoint directory."""
+    grid: int = 12
+    """thumbnail: cells per side."""
     cameras: int = 1
-    # ``ema``/``frozen`` only: the image is area-averaged by this factor per side before encoding. The
-    # encoding then costs about 1/factor**2 of the policy's vision pass, which is AURD's per-step overhead.
+    """Leading cameras (the agent view first) the latent describes. One: AURD encodes every new observation,
+    and the scene camera carries the task state."""
     downsample: int = 1
-    # ``ema``/``frozen`` only: the latent pools the output of the CNN's first ``stages`` stages (0: all). An
-    # earlier stage has a fraction of the weights, and AURD's encoding in the control loop costs mostly
-    # fetching them into a cache the simulator and renderer have just used.
+    """ema/frozen: area-average the picture by this factor per side before encoding. The encoding then costs
+    about 1/factor**2 of the policy's vision pass, which is AURD's per-step overhead."""
     stages: int = 0
+    """ema/frozen: the latent pools the output of the CNN's first stages (0: all). An earlier stage has a
+    fraction of the weights, which AURD's encoding fetches into a cache the simulator has just used."""
 
 
 @dataclass
 class ModelConfig:
-    chunk: int = 8  # K, actions per chunk
-    horizon: int = 5  # H_nominal, value entries and AURD's nominal horizon
-    n_bins: int = 256  # B, discrete bins per action dimension
-    action_dim: int = 7  # D
+    """The CMS model: chunk and horizon, inputs, heads (paper Eqs. 3-7)."""
+
+    chunk: int = 8
+    """K, actions per chunk."""
+    horizon: int = 5
+    """H, the value head's length and AURD's nominal horizon."""
+    n_bins: int = 256
+    """B, discrete bins per action dimension (Eq. 4)."""
+    action_dim: int = 7
+    """D, action dimensions (end-effector deltas and the gripper)."""
     cameras: tuple[str, ...] = ("agentview_rgb", "eye_in_hand_rgb")
+    """Image keys of an observation, the agent view first."""
     image_size: int = 96
+    """Side in pixels of the square pictures the model reads (other sizes are resized)."""
     proprio_keys: tuple[str, ...] = ("ee_pos", "ee_ori", "gripper_states")
+    """Proprioceptive keys, concatenated in this order."""
     proprio_dim: int = 8
+    """Length of the concatenated proprio vector."""
     max_text_len: int = 16
+    """Instruction tokens kept."""
     state_hidden: int = 256
-    decoder_size: int = 24  # side of the inspection image decoded from predicted latents by g
+    """Hidden width of the state predictor (Eq. 6)."""
+    decoder_size: int = 24
+    """Side of the inspection image decoded from predicted latents by g."""
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    """Backbone (Eq. 3)."""
     target_encoder: TargetEncoderConfig = field(default_factory=TargetEncoderConfig)
+    """Target encoder of L_SP and U_pred."""

@@ -9,12 +9,12 @@ because transformers 5 image processors need torchvision.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import torch
 from torch import nn
 
-from pivla.model.hf import PixelSpec, check_local_dir
+from pivla.model.hf.common import check_local_dir
+from pivla.model.hf.pixels import PixelSpec
 
 IMAGENET_MEAN = [0.485, 0.456, 0.406]
 IMAGENET_STD = [0.229, 0.224, 0.225]
@@ -60,21 +60,3 @@ class Dinov2Encoder(nn.Module):
         """All weights come from the checkpoint directory and never change: not saved with runs."""
         return set(self.state_dict().keys())
 
-
-def make_tiny_dinov2(out: str | Path, image_size: int = 32, hidden: int = 32, seed: int = 0) -> Path:
-    """A random tiny DINOv2 with a preprocessor config in the official layout, for tests and smoke runs."""
-    from transformers import Dinov2Config, Dinov2Model
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    patch = max(image_size // 4, 1)
-    cfg = Dinov2Config(hidden_size=hidden, num_hidden_layers=2, num_attention_heads=2, intermediate_size=2 * hidden,
-                       patch_size=patch, image_size=image_size)
-    torch.manual_seed(seed)
-    Dinov2Model(cfg).save_pretrained(str(out))
-    pre = {"image_processor_type": "BitImageProcessor", "do_resize": True, "size": {"shortest_edge": image_size},
-           "resample": 3, "do_center_crop": True, "crop_size": {"height": image_size, "width": image_size},
-           "do_rescale": True, "rescale_factor": 1 / 255, "do_normalize": True,
-           "image_mean": IMAGENET_MEAN, "image_std": IMAGENET_STD}
-    (out / "preprocessor_config.json").write_text(json.dumps(pre, indent=2))
-    return out

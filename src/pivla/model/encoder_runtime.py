@@ -3,7 +3,7 @@
 AURD encodes every new observation with the target encoder (its U_pred, Eq. 13), so that encoding is most
 of what AURD adds to a control step over a fixed horizon. At batch 1 the default CNN spends much of its
 eager-PyTorch time dispatching small operators; on ONNX Runtime one encoding takes 0.5-0.7x as long,
-and AURD's own time per step in the twin falls by ~0.6 ms (docs/results.md, session 13). Only
+and AURD's own time per step in the twin falls by ~0.6 ms (docs/experiments.md#target-encoder-on-onnx-runtime). Only
 single-observation inference changes: training, calibration and the weights are PyTorch's.
 
 The graph is exported from the loaded weights (``torch.onnx.export(dynamo=True)``, a few seconds), cached
@@ -23,6 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from pivla.io import atomic_write_bytes
+from pivla.model.onnx_encoder import OnnxEncoder
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +74,7 @@ class TargetLatents(torch.nn.Module):
     cameras, area-averaged (``pivla.data.transforms.area_downsample``) and centred
     (``pivla.model.backbone.centre``) in NumPy before the graph, with the final 1 / sqrt(d_z) as the layer
     norm's scale. The graph then starts at the first convolution and ends at the layer norm (33 nodes instead
-    of 36; in the twin's loop a graph like it encoded 0.01-0.07 ms faster, docs/results.md, session 18).
+    of 36; in the twin's loop a graph like it encoded 0.01-0.07 ms faster, docs/experiments.md#the-encoding-path-in-the-control-loop).
     ``onnx_target_encoder`` checks the graph against this module; the tests check the whole ONNX path against
     the PyTorch ``TargetEncoder``."""
 
@@ -87,53 +90,6 @@ class TargetLatents(torch.nn.Module):
         return F.layer_norm(z, z.shape[-1:], weight=self.scale)
 
 
-class OnnxEncoder:
-    """A callable: float32 (1, *image_shape) array -> float32 (1, d_z) array, on ONNX Runtime's CPU provider.
-
-    One thread that does not spin between calls: between two encodings the control loop steps the simulator
-    and renders, and a spinning thread would take a core from it; at batch 1 a second thread's wake-up costs
-    more than it saves. Input and output stay bound to two preallocated arrays (I/O binding), which saves
-    ONNX Runtime's per-call conversion of the feed and allocation of the result.
-    """
-
-    def __init__(self, model_bytes: bytes):
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = 1
-        opts.inter_op_num_threads = 1
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        opts.log_severity_level = 3
-        self.session = ort.InferenceSession(model_bytes, opts, providers=["CPUExecutionProvider"])
-        (inp,), (out,) = self.session.get_inputs(), self.session.get_outputs()
-        self._in = np.zeros(inp.shape, np.float32)
-        self._out = np.zeros(out.shape, np.float32)
-        self._binding = self.session.io_binding()
-        self._binding.bind_cpu_input(inp.name, self._in)
-        self._binding.bind_output(out.name, "cpu", 0, np.float32, self._out.shape, self._out.ctypes.data)
-
-    @property
-    def input_shape(self) -> tuple[int, ...]:
-        return self._in.shape
-
-    @property
-    def inputs(self) -> np.ndarray:
-        """The bound input array: a caller that prepares its images in place here, then calls ``run``, saves
-        a copy (``Policy.encode``)."""
-        return self._in
-
-    def run(self) -> np.ndarray:
-        """Latents of what ``inputs`` holds now."""
-        self.session.run_with_iobinding(self._binding)
-        return self._out.copy()
-
-    def __call__(self, images: np.ndarray) -> np.ndarray:
-        if images.shape != self._in.shape:
-            raise ValueError(f"target encoder graph takes images of shape {self._in.shape}, got {images.shape}")
-        np.copyto(self._in, images)
-        return self.run()
-
-
 def onnx_target_encoder(module: torch.nn.Module, image_shape: tuple[int, int, int], cache_dir: Path | None = None,
                         atol: float = 1e-5, rtol: float = 1e-3) -> OnnxEncoder | None:
     """The module on ONNX Runtime, or None (logged) when it cannot be exported or disagrees with PyTorch.
@@ -143,8 +99,6 @@ def onnx_target_encoder(module: torch.nn.Module, image_shape: tuple[int, int, in
     replacing graphs of other weights; an unwritable directory only costs the export again on the next load.
     A cached graph that no longer agrees (say, the encoder's code changed) is exported again.
     """
-    from pivla.training.checkpoint import atomic_write_bytes
-
     probe = torch.rand(1, *image_shape, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
         expected = module(probe).float().numpy()

@@ -32,9 +32,13 @@ from typing import Callable
 
 import torch
 import torch.nn.functional as F
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
 from torch import nn
 
 from pivla.io import atomic_dir
+from pivla.model.hf.common import check_local_dir
+from pivla.model.hf.lora import enable_activation_checkpointing
 
 MARKER = "pivla_openvla.json"
 FORMAT = "pivla_openvla/1"
@@ -94,7 +98,6 @@ class OpenVLAModel(nn.Module):
 
     @classmethod
     def from_pretrained(cls, path: str | os.PathLike, dtype: torch.dtype) -> "OpenVLAModel":
-        from safetensors.torch import load_file
         from transformers import Dinov2WithRegistersModel, LlamaForCausalLM, SiglipVisionModel
 
         path = Path(path)
@@ -114,8 +117,6 @@ class OpenVLAModel(nn.Module):
     def save_pretrained(self, out: str | os.PathLike) -> None:
         """The layout :func:`convert_openvla` writes (used by ``pivla merge-lora``); tokenizer and
         preprocessor config are the caller's."""
-        from safetensors.torch import save_file
-
         out = Path(out)
         self.language_model.save_pretrained(str(out))
         self.vision_backbone.dinov2.save_pretrained(str(out / DINO_DIR))
@@ -130,8 +131,6 @@ class OpenVLAModel(nn.Module):
 
     def activation_checkpointing_enable(self, activation_checkpointing_kwargs: dict | None = None) -> None:
         """Only the language model: the frozen towers build no autograd graph."""
-        from pivla.model.hf import enable_activation_checkpointing
-
         enable_activation_checkpointing(self.language_model, activation_checkpointing_kwargs)
 
 
@@ -222,8 +221,6 @@ class _Source:
     """OpenVLA's safetensors (an index and its shards, or one model.safetensors), opened lazily."""
 
     def __init__(self, path: Path, stack: ExitStack):
-        from safetensors import safe_open
-
         index = path / "model.safetensors.index.json"
         if index.is_file():
             try:
@@ -373,8 +370,6 @@ class _ShardWriter:
             self._flush()
 
     def _flush(self) -> None:
-        from safetensors.torch import save_file
-
         if self.current:
             f = self.out / f".shard-{len(self.done)}"
             save_file(self.current, str(f), metadata={"format": "pt"})
@@ -451,8 +446,6 @@ def convert_openvla(src: str | os.PathLike, out: str | os.PathLike, max_shard_by
       OpenVLA's own configuration code builds it (so e.g. rms_norm_eps is whatever that gives).
     """
     from transformers import LlamaConfig, LlamaForCausalLM
-
-    from pivla.model.hf import check_local_dir
 
     src, out = check_local_dir(src, "convert-openvla").resolve(), Path(out)
     if out.exists():

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from pivla.envs.tabletop import arm
+from pivla.envs import arm
 from pivla.robot.env import RobotEnv
 
 log = logging.getLogger(__name__)

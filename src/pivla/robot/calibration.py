@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pivla.envs.tabletop import arm
+from pivla.envs import arm
 from pivla.robot import protocol as P
 
 NOMINAL_US_PER_RAD = 2000.0 / np.pi

@@ -16,8 +16,7 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 
-from pivla.envs.tabletop import arm
-from pivla.envs.tabletop import env as twin
+from pivla.envs import arm
 from pivla.robot.robot import Camera, Robot, RobotState
 from pivla.robot.safety import SafetyError
 
@@ -26,11 +25,11 @@ from pivla.robot.safety import SafetyError
 class RobotEnvConfig:
     """Action scaling follows the twin (metres / radians per unit action); ``control_hz`` paces steps."""
 
-    control_hz: float = float(twin.CONTROL_HZ)
-    pos_scale: float = twin.TRANS_SCALE
-    rot_scale: float = twin.ROT_SCALE
+    control_hz: float = float(arm.CONTROL_HZ)
+    pos_scale: float = arm.TRANS_SCALE
+    rot_scale: float = arm.ROT_SCALE
     max_steps: int = 300
-    ik_iterations: int = twin.IK_ITERATIONS
+    ik_iterations: int = arm.IK_ITERATIONS
     realtime: bool = True
 
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pivla.envs.tabletop import arm
+from pivla.envs import arm
 from pivla.robot.calibration import ArmCalibration
 from pivla.robot.link import Board, BoardError, LinkLost
 from pivla.robot.safety import CheckedCommand, SafetyLayer

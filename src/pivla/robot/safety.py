@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pivla.envs.tabletop import arm
+from pivla.envs import arm
 from pivla.robot.calibration import ArmCalibration
 
 

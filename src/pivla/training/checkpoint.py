@@ -8,19 +8,15 @@ Tensors are always full (the trainer gathers FSDP shards first), so files do not
 
 from __future__ import annotations
 
-import json
-import os
 import shutil
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
 
 import torch
 from safetensors.torch import load_file, save_file
 
-from pivla.io import atomic_dir, atomic_path
-
-if TYPE_CHECKING:
-    from pivla.training.trainer import TrainConfig
+from pivla.config import from_dict
+from pivla.io import atomic_dir, atomic_path, atomic_write_json, read_json
+from pivla.training.config import TrainConfig
 
 MODEL_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
@@ -30,42 +26,27 @@ STATUS_FILE = "status.json"
 CALIBRATION_FILE = "calibration.json"
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-
-
-def atomic_write_json(path: Path, obj: Any) -> None:
-    atomic_write_bytes(Path(path), (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
-
-
-def read_json(path: Path) -> Any:
-    try:
-        return json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: missing (is this a pivla run directory?)") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: corrupt JSON ({e})") from e
-
-
 # backbone fields whose default changed, with the value every run written before they existed used
 LEGACY_BACKBONE = {"grid_tokens": True}
 
 
 def read_run_config(run_dir: Path) -> TrainConfig:
     """The ``TrainConfig`` of a run directory. Runs written before a default changed keep what they were
-    trained with (``LEGACY_BACKBONE``), so old policies still load."""
-    from pivla import config as cfgmod
-    from pivla.training.trainer import TrainConfig
-
+    trained with (``LEGACY_BACKBONE``), so old policies still load. Sections missing from an old file take
+    their class defaults, not the recipe's (e.g. a full-size target encoder)."""
     data = read_json(Path(run_dir) / CONFIG_FILE)
     backbone = data.get("model", {}).get("backbone")
     if isinstance(backbone, dict):
         for key, value in LEGACY_BACKBONE.items():
             backbone.setdefault(key, value)
-    return cfgmod.from_dict(TrainConfig, data)
+    return from_dict(TrainConfig, data)
+
+
+def write_calibration(run_dir: str | Path, calibration: dict, stats: dict | None = None) -> None:
+    """AURD's thresholds (``calibration.json``, read by ``load_policy``) and how they were found."""
+    atomic_write_json(Path(run_dir) / CALIBRATION_FILE, calibration)
+    if stats is not None:
+        atomic_write_json(Path(run_dir) / "calibration_stats.json", stats)
 
 
 def save_tensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None) -> None:

@@ -7,34 +7,14 @@ padded chunk steps (past the episode end) and non-imitation episodes (failed rol
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
 from pivla.model.cms import CMSModel, CMSOutput
-
+from pivla.training.config import LossConfig
 
 SIGMA_MIN, SIGMA_MAX, ADV_CLIP, RESIDUAL_CAP = 0.05, 1.0, 3.0, 3.0
-
-
-@dataclass
-class LossConfig:
-    alpha: float = 0.1  # weight of L_RL (Eq. 8)
-    beta: float = 0.05  # weight of L_SP (Eq. 8)
-    lam: float = 1.0  # weight of SmoothL1 inside L_IL (Eq. 9)
-    gamma: float = 0.99  # GAE discount
-    gae_lambda: float = 0.95
-    critic_coef: float = 1.0  # critic regression inside L_RL (the paper omits it; an actor-critic needs it)
-    use_discrete: bool = True  # ablations: discrete-only / continuous-only heads
-    use_continuous: bool = True
-    use_rl: bool = True
-    use_sp: bool = True
-    use_recon: bool = True
-    # chunk steps per sample (drawn at random) whose next observation is encoded for L_SP. One, not two: the
-    # same expected loss, and the demo trains 1.04-1.12x faster with no loss of validation success once AURD's
-    # thresholds sit at P99 (docs/results.md, sessions 11 and 12)
-    sp_steps: int = 1
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -14,7 +14,6 @@ import logging
 import math
 import os
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -24,56 +23,34 @@ from torch.distributed.tensor import DTensor, distribute_tensor
 
 from pivla import config as cfgmod
 from pivla.data.dataset import (
-    ChunkDataset, augment_color, augment_shift, collate, epoch_batch_indices, fit_norm_stats, prepare_episode, split_episodes,
+    ChunkDataset,
+    augment_color,
+    augment_shift,
+    collate,
+    epoch_batch_indices,
+    fit_norm_stats,
+    prepare_episode,
+    split_episodes,
 )
-from pivla.data.format import DatasetError, read_dataset
+from pivla.data.datasets import read_dataset
+from pivla.data.format import DatasetError
 from pivla.data.normalize import NormStats
 from pivla.data.text import build_text_tokenizer, load_text_tokenizer
 from pivla.data.transforms import batch_to_tensors
 from pivla.model.cms import CMSModel
-from pivla.model.config import ModelConfig
 from pivla.training import checkpoint as ck
-from pivla.training.losses import LossConfig, unified_loss
+from pivla.training.config import TrainConfig
+from pivla.training.losses import unified_loss
 
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class TrainConfig:
-    data: str = ""
-    extra_data: tuple[str, ...] = ()  # more dataset dirs, e.g. recorded policy rollouts for the RL terms
-    out: str = "runs/default"
-    steps: int = 3000
-    batch_size: int = 64
-    grad_accum: int = 1
-    lr: float = 3e-4
-    weight_decay: float = 0.01
-    warmup: int = 200
-    min_lr_ratio: float = 0.05
-    grad_clip: float = 1.0
-    seed: int = 0
-    val_fraction: float = 0.1
-    augment_pad: int = 4  # random-shift augmentation (pixels)
-    augment_color: float = 0.2  # photometric jitter strength (0 = off)
-    log_every: int = 25
-    eval_every: int = 500
-    ckpt_every: int = 500
-    keep_checkpoints: int = 2
-    value_refresh_every: int = 500
-    mixed_precision: str = "auto"  # auto: bf16 on a GPU that supports it, else no
-    device: str = "auto"  # auto | cpu | cuda
-    threads: int = 0  # torch intra-op threads on CPU; 0 = all cores
-    fsdp: bool = False  # shard parameters, gradients and optimizer state across processes (FSDP2) instead of DDP
-    progress: bool = True
-    model: ModelConfig = field(default_factory=ModelConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-
-
 def lr_lambda(step: int, cfg: TrainConfig) -> float:
     """Linear warm-up, then cosine decay to ``min_lr_ratio`` of the peak."""
-    if step < cfg.warmup:
-        return (step + 1) / max(cfg.warmup, 1)
-    progress = min(1.0, (step - cfg.warmup) / max(cfg.steps - cfg.warmup, 1))
+    warmup = cfg.warmup_steps
+    if step < warmup:
+        return (step + 1) / max(warmup, 1)
+    progress = min(1.0, (step - warmup) / max(cfg.steps - warmup, 1))
     return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
@@ -362,7 +339,7 @@ class Trainer:
                    mininterval=2.0, dynamic_ncols=True)
         t0, s0 = time.time(), self.step
         while self.step < cfg.steps:
-            if cfg.loss.use_rl and cfg.loss.alpha > 0 and self.step % cfg.value_refresh_every == 0:
+            if cfg.loss.use_rl and cfg.loss.alpha > 0 and self.step % cfg.every(cfg.value_refresh_every) == 0:
                 self._refresh_values()
             logs = self.train_step()
             bar.update(1)
@@ -374,13 +351,13 @@ class Trainer:
                 if self.writer:
                     for k, v in logs.items():
                         self.writer.add_scalar(f"train/{k}", v, self.step)
-            if self.step % cfg.eval_every == 0 or self.step == cfg.steps:
+            if self.step % cfg.every(cfg.eval_every) == 0 or self.step == cfg.steps:
                 val = self.validate()
                 if val and self.writer:
                     for k, v in val.items():
                         self.writer.add_scalar(f"val/{k}", v, self.step)
                     self.history.append({"step": self.step, **{f"val_{k}": round(v, 5) for k, v in val.items()}})
-            if self.step % cfg.ckpt_every == 0 or self.step == cfg.steps:
+            if self.step % cfg.every(cfg.ckpt_every) == 0 or self.step == cfg.steps:
                 self._save(final=self.step == cfg.steps)
         bar.close()
         if self.writer:

@@ -29,10 +29,12 @@ def available_suites() -> tuple[str, ...]:
     return _available_suites()
 
 
-def expert_actor(suite: str, task: int | str) -> Any:
+def expert_actor(suite: str, task: int | str, config: Any = None) -> Any:
+    """The scripted expert of one task (``pivla.envs.libero.expert.expert_actor``; ``config`` an ExpertConfig)."""
+    from pivla.envs.libero.expert import ExpertConfig
     from pivla.envs.libero.expert import expert_actor as _expert_actor
 
-    return _expert_actor(suite, task)
+    return _expert_actor(suite, task, config or ExpertConfig())
 
 
 __all__ = ["INSTALL_HINT", "available", "available_suites", "expert_actor", "list_tasks", "make_env"]

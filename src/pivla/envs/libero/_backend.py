@@ -33,11 +33,11 @@ def libero() -> SimpleNamespace:
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
     try:
         with contextlib.redirect_stdout(io.StringIO()):
+            import mujoco
+            import robosuite.utils.transform_utils as transform_utils
             from libero.libero import benchmark, get_libero_path
             from libero.libero.envs import bddl_utils
             from libero.libero.envs.env_wrapper import ControlEnv
-            import mujoco
-            import robosuite.utils.transform_utils as transform_utils
     except ImportError as exc:
         raise ImportError(f"LIBERO is not importable ({exc}); {INSTALL_HINT}") from exc
     _modules = SimpleNamespace(

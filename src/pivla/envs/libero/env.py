@@ -7,6 +7,11 @@ OSC_POSE space (xyz and axis-angle deltas scaled to [-1, 1]: 0.05 m and 0.5 rad 
 -1 open / +1 close) and the instruction from the task's BDDL file (``env.language_instruction``; the task
 name is wrong for the LIBERO-PRO language suites).
 
+Besides the official initial states, ``reset`` can sample a fresh scene from the task's BDDL placement
+regions (``options={"init": "random", "seed": s}``), for demonstrations and validation rollouts that must
+not reuse the evaluation's states: LIBERO's own placement samplers draw it, seeded, so a seed always gives
+the same scene, and a draw that matches one of the 50 official states is drawn again.
+
 Speed: only the cameras the policy uses are rendered, at its resolution, with reflections switched off;
 cameras are skipped during the settling steps, and ``render=False`` builds the scene without any renderer
 (privileged-state experts do not need pixels). The model is not reloaded on every reset (``hard_reset``
@@ -37,6 +42,12 @@ STEP_LIMITS = {"libero_spatial": 220, "libero_object": 280, "libero_goal": 300, 
 
 # Gripper open, arm still: what the settling steps send.
 NOOP_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)
+
+INIT_MODES = ("official", "random")
+# A sampled scene whose simulator state is within this of an official init state (every qpos and qvel entry)
+# counts as that state: positions are sampled over centimetres, so only a copy comes this close.
+OFFICIAL_MATCH_TOL = 1e-4
+MAX_REDRAWS = 20  # sampled scenes drawn again at most this often when they match an official state
 
 
 def step_limit(suite: str) -> int:
@@ -110,7 +121,7 @@ def _task_index(suite: str, task: int | str) -> int:
 
 
 def quat_to_euler(quat_xyzw: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw (extrinsic x-y-z, i.e. R = Rz(yaw) Ry(pitch) Rx(roll)) of a robosuite (x, y, z, w) quaternion."""
+    """Roll, pitch, yaw (extrinsic x-y-z: R = Rz(yaw) Ry(pitch) Rx(roll)) of a robosuite (x, y, z, w) quaternion."""
     x, y, z, w = np.asarray(quat_xyzw, dtype=np.float64) / np.linalg.norm(quat_xyzw)
     roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
     pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
@@ -129,8 +140,12 @@ class LiberoEnvConfig:
     settle_steps: int = 10
     binarize_gripper: bool = True  # gripper command > 0 closes, otherwise opens (as in OpenVLA-OFT's eval)
     reflections: bool = False  # reflections cost ~25% of a frame and add nothing a policy needs
+    shadows: bool = True  # switching them off measured no faster on llvmpipe (docs/libero.md, Speed)
+    init: str = "official"  # reset without options: "official" (next official state) or "random" (seeded sample)
 
     def __post_init__(self) -> None:
+        if self.init not in INIT_MODES:
+            raise ValueError(f"init must be one of {INIT_MODES}, got {self.init!r}")
         unknown = set(self.cameras) - set(CAMERAS)
         if unknown:
             raise ValueError(f"unknown cameras {sorted(unknown)}; choose from {sorted(CAMERAS)}")
@@ -157,7 +172,8 @@ class LiberoEnv(gym.Env):
         bench = _benchmark(suite)
         self.init_states = np.asarray(bench.get_task_init_states(self.task_index))
         self._next_init = 0 if init_state is None else int(init_state)
-        self.init_state: int | None = None  # the official init state of the current episode
+        self.init_state: int | None = None  # the official init state of the current episode (None: sampled)
+        self.init_seed: int | None = None  # the seed of the current episode's sampled scene (None: official)
         lib = libero()
         cams = [CAMERAS[c] for c in config.cameras] if config.render else []
         self._env = lib.ControlEnv(
@@ -170,6 +186,10 @@ class LiberoEnv(gym.Env):
             horizon=self.max_steps + config.settle_steps + 10,
             ignore_done=True,
             hard_reset=False,
+            # Sampled scenes start the arm like the official states do: its rest pose plus N(0, 0.02 rad) per
+            # joint (robosuite's "default" noise; the official states' joints scatter by 0.017-0.023 rad).
+            # ``_arm_noise`` switches it off for official states, whose joints the state fixes.
+            initialization_noise="default",
         )
         self.instruction: str = self._env.language_instruction.strip()
         self._cams = cams
@@ -209,7 +229,9 @@ class LiberoEnv(gym.Env):
     def _configure_renderer(self) -> None:
         ctx = self._env.sim._render_context_offscreen if self._cams else None
         if ctx is not None:
-            ctx.scn.flags[libero().mujoco.mjtRndFlag.mjRND_REFLECTION] = int(self.config.reflections)
+            flags = libero().mujoco.mjtRndFlag
+            ctx.scn.flags[flags.mjRND_REFLECTION] = int(self.config.reflections)
+            ctx.scn.flags[flags.mjRND_SHADOW] = int(self.config.shadows)
 
     def _obs(self, raw: dict[str, np.ndarray]) -> dict[str, Any]:
         obs: dict[str, Any] = {}
@@ -225,28 +247,38 @@ class LiberoEnv(gym.Env):
         return obs
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, Any], dict]:
-        """Start from an official init state: ``options["init_state"]`` (taken modulo 50), else the next one.
+        """Start from an official init state or from a freshly sampled scene.
 
-        The init state fixes every movable object; LIBERO's reset also re-samples fixture placements in
-        their BDDL regions from NumPy's global generator, which is seeded here from
-        ``self.np_random`` (and restored afterwards), so a seeded reset is reproducible.
+        ``options``: ``{"init_state": i}`` starts from official state ``i`` (modulo 50); ``{"init": "random",
+        "seed": s}`` samples a scene from the task's BDDL regions with seed ``s`` (default: drawn from the
+        reset's ``seed``); without either, the config's ``init`` mode decides (the next official state, or a
+        sample). An official state fixes every movable object; LIBERO's reset also re-samples fixture
+        placements in their regions from NumPy's global generator, which is seeded here (and restored
+        afterwards), so a seeded reset is reproducible.
         """
         if seed is None and self._seed is not None:
             seed, self._seed = self._seed, None
         super().reset(seed=seed)
-        options = options or {}
-        idx = int(options.get("init_state", self._next_init)) % len(self.init_states)
-        self._next_init = idx + 1
-        self.init_state = idx
-        global_state = np.random.get_state()
-        np.random.seed(int(self.np_random.integers(2**32)))
-        try:
-            self._env.reset()
-        finally:
-            np.random.set_state(global_state)
+        options = dict(options or {})
+        mode = options.pop("init", "official" if "init_state" in options else self.config.init)
+        unknown = set(options) - {"init_state", "seed"}
+        if mode not in INIT_MODES or unknown or (mode == "random" and "init_state" in options):
+            raise ValueError(f"reset options: init must be one of {INIT_MODES} (with 'seed') or 'init_state' "
+                             f"must be given alone; got {options | {'init': mode}}")
         self._configure_renderer()
         self._set_cameras(False)
-        raw = self._env.set_init_state(self.init_states[idx])
+        if mode == "random":
+            draw_seed = int(options["seed"]) if "seed" in options else int(self.np_random.integers(2**31))
+            self._arm_noise(True)
+            raw, redraws = self._sample_scene(draw_seed)
+            self.init_state, self.init_seed = None, draw_seed
+        else:
+            idx = int(options.get("init_state", self._next_init)) % len(self.init_states)
+            self._next_init = idx + 1
+            self.init_state, self.init_seed, redraws = idx, None, 0
+            self._arm_noise(False)
+            self._seeded_reset(int(self.np_random.integers(2**32)))
+            raw = self._env.set_init_state(self.init_states[idx])
         for _ in range(self.config.settle_steps):
             raw, _, _, _ = self._env.step(NOOP_ACTION)
         if self._cams:
@@ -255,8 +287,47 @@ class LiberoEnv(gym.Env):
         self._last_raw = raw
         self._t = 0
         self.episode_id += 1
-        info = {"success": bool(self._env.check_success()), "init_state": idx, "task": self.spec_.name}
+        info = {"success": bool(self._env.check_success()), "init_state": self.init_state,
+                "init_seed": self.init_seed, "task": self.spec_.name}
+        if mode == "random":
+            info["redraws"] = redraws
         return self._obs(raw), info
+
+    def _arm_noise(self, on: bool) -> None:
+        """The arm's initialization noise for the next reset: on for sampled scenes, off for official states.
+        The controller keeps the reset's joint pose as its null-space posture, so a noisy reset under an
+        official state would make the same official episode differ from one reset to the next."""
+        for robot in self._env.env.robots:
+            robot.initialization_noise = {"magnitude": 0.02 if on else 0.0, "type": "gaussian"}
+
+    def _seeded_reset(self, seed: int) -> dict[str, np.ndarray]:
+        """LIBERO's reset (placement samplers included) with NumPy's global generator seeded, then restored."""
+        global_state = np.random.get_state()
+        np.random.seed(seed % 2**32)
+        try:
+            return self._env.reset()
+        finally:
+            np.random.set_state(global_state)
+
+    def _sample_scene(self, seed: int) -> tuple[dict[str, np.ndarray], int]:
+        """A scene sampled from the BDDL regions with ``seed``, drawn again (from seeds derived from it) while
+        it matches an official init state; returns LIBERO's observation and the number of redraws."""
+        for redraw in range(MAX_REDRAWS + 1):
+            draw = seed if redraw == 0 else int(np.random.SeedSequence([seed, redraw]).generate_state(1)[0])
+            raw = self._seeded_reset(draw)
+            if self.official_match(self._env.get_sim_state()) is None:
+                return raw, redraw
+        raise RuntimeError(f"{MAX_REDRAWS + 1} scenes sampled from seed {seed} all match official init states")
+
+    def official_match(self, state: np.ndarray) -> int | None:
+        """Index of the official init state equal to the flattened simulator ``state`` (within
+        ``OFFICIAL_MATCH_TOL`` on every qpos and qvel entry; time is ignored), or None."""
+        state = np.asarray(state, dtype=np.float64)
+        if state.shape != self.init_states.shape[1:]:
+            raise ValueError(f"state has shape {state.shape}, official init states {self.init_states.shape[1:]}")
+        diff = np.abs(self.init_states[:, 1:] - state[1:]).max(axis=1)
+        hits = np.flatnonzero(diff <= OFFICIAL_MATCH_TOL)
+        return int(hits[0]) if len(hits) else None
 
     def to_env_action(self, action: Any) -> np.ndarray:
         """Validate a 7-D pivla action and convert it to what LIBERO's controller takes."""
@@ -289,6 +360,7 @@ class LiberoEnv(gym.Env):
 def make_env(suite: str, task: int | str, *, seed: int | None = None, image_size: int = 128,
              init_state: int | None = None, cameras: tuple[str, ...] = ("agentview_rgb", "eye_in_hand_rgb"),
              render: bool = True, **kwargs: Any) -> LiberoEnv:
-    """A LIBERO task env; extra keyword arguments are ``LiberoEnvConfig`` fields (max_steps, settle_steps...)."""
+    """A LIBERO task env; extra keyword arguments are ``LiberoEnvConfig`` fields (max_steps, settle_steps,
+    init...)."""
     config = LiberoEnvConfig(image_size=image_size, cameras=tuple(cameras), render=render, **kwargs)
     return LiberoEnv(suite, task, config, init_state=init_state, seed=seed)

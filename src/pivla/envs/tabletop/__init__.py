@@ -16,7 +16,7 @@ if "MUJOCO_GL" not in os.environ:
     os.environ["MUJOCO_GL"] = "egl" if ctypes.util.find_library("EGL") else "osmesa"
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 # llvmpipe rasterises the twin's small pictures faster in the rendering thread than across its worker
-# threads: same pixels, and env.step took 0.3-1.3 ms less at 80 px on 2 cores (docs/results.md, session 19)
+# threads: same pixels, and env.step took 0.3-1.3 ms less at 80 px on 2 cores (docs/experiments.md#one-thread-rendering)
 os.environ.setdefault("LP_NUM_THREADS", "0")
 
 import gymnasium  # noqa: E402

@@ -23,18 +23,16 @@ import gymnasium
 import mujoco
 import numpy as np
 
-from pivla.envs.tabletop import arm, tasks
+from pivla.envs import arm
+from pivla.envs.arm import CONTROL_HZ, IK_ITERATIONS, ROT_SCALE, TRANS_SCALE  # the action convention
+from pivla.envs.tabletop import tasks
 from pivla.envs.tabletop.perturb import PerturbConfig, Perturber, parse_perturb
 from pivla.envs.tabletop.scene import CAB_HALF_W, asset_files, scene_xml
 from pivla.envs.tabletop.servo import ServoConfig, ServoModel
 
-CONTROL_HZ = 10
 PHYSICS_DT = 0.002
 SUBSTEPS = int(round(1.0 / (CONTROL_HZ * PHYSICS_DT)))
-TRANS_SCALE = 0.02  # m per unit action per control step
-ROT_SCALE = 0.15  # rad per unit action per control step
 WORKSPACE = np.array([[0.05, -0.28, 0.005], [0.32, 0.28, 0.30]])  # tool-centre box (m)
-IK_ITERATIONS = 8
 CAMERAS = ("agentview_rgb", "eye_in_hand_rgb")
 _CAMERA_NAMES = {"agentview_rgb": "agentview", "eye_in_hand_rgb": "eye_in_hand"}
 STAGES = ("reached", "grasped", "lifted", "placed")
@@ -205,7 +203,9 @@ class TabletopEnv(gymnasium.Env):
         d = self.data
         d.ctrl[self._arm_act] = self.servo.command(q) if self.servo is not None else q
         d.ctrl[self._finger_act] = arm.GRIPPER_OPEN * (1.0 - a[6]) / 2.0
-        self.perturber.step(d, 1.0 / CONTROL_HZ)
+        for event in self.perturber.step(d, 1.0 / CONTROL_HZ):
+            if event["kind"] == "displace_object":  # the task is judged from where the object now starts
+                self._initial[event["object"]] = self._initial[event["object"]] + np.asarray(event["shift"])
         mujoco.mj_step(self.model, d, nstep=SUBSTEPS)
         self._steps += 1
 
@@ -221,6 +221,7 @@ class TabletopEnv(gymnasium.Env):
             "stages": {s: bool(self._stages[:, i].all()) for i, s in enumerate(STAGES)},
             "stage_progress": float(self._stages.mean()),
             "step": self._steps,
+            "perturb_events": list(self.perturber.events),
         }
         return self._observation(), reward, success, truncated, info
 

@@ -19,8 +19,8 @@ A grasp that does not hold is retried (open, rise, approach again). ``miss > 0``
 of the demonstrations, in the same DART spirit: in that share of episodes the first grasp is *executed* a few
 centimetres off the object and closed on nothing, while the labels stay the clean expert's; the reopening and
 the second approach that follow are recorded as they are. Policies trained without it closed the gripper
-short of a small object and then hovered with it closed for the rest of the episode (docs/results.md,
-session 6).
+short of a small object and then hovered with it closed for the rest of the episode
+(docs/experiments.md#missed-grasp-recovery-in-the-demonstrations).
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pivla.envs.tabletop import arm, tasks
+from pivla.envs import arm
+from pivla.envs.tabletop import tasks
 from pivla.envs.tabletop.env import ROT_SCALE, TRANS_SCALE, TabletopEnv
 
 Target = Callable[[dict], np.ndarray]

@@ -7,9 +7,10 @@ from __future__ import annotations
 import functools
 
 import cv2
+import mujoco
 import numpy as np
 
-from pivla.envs.tabletop.arm import ARM_XML
+from pivla.envs.arm import ARM_XML
 from pivla.envs.tabletop.tasks import CABINET_FRONT_X, OBJECTS, TaskDef
 
 TABLE_RGBA = (0.78, 0.66, 0.52, 1.0)
@@ -39,6 +40,9 @@ CLUTTER_SHAPES = (
 # Cabinet: outer depth (x), half width (y), height (z); the drawer slides towards the robot (-x).
 CAB_DEPTH, CAB_HALF_W, CAB_H = 0.12, 0.075, 0.065
 HANDLE_STANDOFF, HANDLE_Z = 0.04, 0.04
+# The scene's MJCF model is named MODEL_PREFIX + task name, so a perturbation given only the compiled model
+# can tell which task (objects, instructed direction) it acts on.
+MODEL_PREFIX = "pivla_tabletop_"
 
 
 def look_at_xyaxes(pos: np.ndarray, target: np.ndarray) -> str:
@@ -129,7 +133,7 @@ def scene_xml(task: TaskDef, n_distractors: int = 0, n_clutter: int = 0) -> str:
     cabinet = _cabinet_xml() if task.drawer else ""
     distractors = "".join(_distractor_xml(i) for i in range(n_distractors))
     distractors += "".join(_clutter_xml(i) for i in range(n_clutter))
-    return f"""<mujoco model="pivla_tabletop_{task.name}">
+    return f"""<mujoco model="{MODEL_PREFIX}{task.name}">
   <include file="{ARM_XML.name}"/>
   <visual>
     <quality shadowsize="0" offsamples="0"/>
@@ -173,6 +177,14 @@ def scene_xml(task: TaskDef, n_distractors: int = 0, n_clutter: int = 0) -> str:
   </worldbody>
   <contact><exclude body1="finger_left" body2="finger_right"/></contact>
 </mujoco>"""
+
+
+def task_name(model: mujoco.MjModel) -> str:
+    """The task a compiled scene model was built for (from its model name, see ``MODEL_PREFIX``)."""
+    name = bytes(model.names).split(b"\0", 1)[0].decode()
+    if not name.startswith(MODEL_PREFIX):
+        raise ValueError(f"model {name!r} is not a tabletop scene (its name must start with {MODEL_PREFIX!r})")
+    return name[len(MODEL_PREFIX):]
 
 
 def _png(gray: np.ndarray) -> bytes:

@@ -4,7 +4,7 @@ An MG996R-class servo ignores command changes smaller than its deadband, its gea
 (the horn lags the motor by up to half the play, on the side it last moved from), its potentiometer
 reading jitters, and it turns at a limited speed. Each effect is a pure step on (state, command); the
 defaults make repeated moves of the twin to one target scatter by about the paper's 10 mm
-(``repeatability_mm`` measures it; docs/results.md has the figure).
+(``repeatability_mm`` measures it; docs/results.md#servo-repeatability-on-the-twin has the figure).
 """
 
 from __future__ import annotations

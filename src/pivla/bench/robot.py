@@ -1,13 +1,23 @@
-"""Round-trip latency of the serial link (``pivla robot check --bench N``, ``pivla bench robot``)."""
+"""Round-trip latency of the serial link to the arm's board (``pivla bench robot``, ``pivla robot check --bench N``)."""
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
+from dataclasses import dataclass
 
 from pivla.robot.link import Board
 from pivla.robot.simboard import SimBoard
+
+
+@dataclass
+class RobotBenchConfig:
+    """Which board to time."""
+
+    port: str | None = None
+    """Serial port of the board (default: start the firmware on a simulated Uno)."""
+    n: int = 200
+    """Round trips of each kind."""
 
 
 def measure(board: Board, n: int) -> dict:
@@ -28,18 +38,16 @@ def measure(board: Board, n: int) -> dict:
     return results
 
 
-def run_bench(args: argparse.Namespace) -> dict:
-    """Flags: ``port`` (None: start a simavr board with the built firmware), ``n`` round trips."""
-    port, n = getattr(args, "port", None), int(getattr(args, "n", 200))
-    if port:
-        board = Board.open(port)
+def run_robot_bench(cfg: RobotBenchConfig) -> dict:
+    if cfg.port:
+        board = Board.open(cfg.port)
         try:
-            return {"port": port, **measure(board, n)}
+            return {"port": cfg.port, **measure(board, cfg.n)}
         finally:
             board.close()
     with SimBoard() as sim:
         board = Board.open(sim.port)
         try:
-            return {"port": f"simavr:{sim.port}", **measure(board, n)}
+            return {"port": f"simavr:{sim.port}", **measure(board, cfg.n)}
         finally:
             board.close()

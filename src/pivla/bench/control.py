@@ -16,36 +16,58 @@ ratio of medians.
 
 from __future__ import annotations
 
-import argparse
 import time
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
 
-from pivla.control.executors import make_executor
+from pivla.bench.policy import default_policy, random_obs
+from pivla.control.contract import Calibration
+from pivla.control.executors import executor_config, make_executor
 from pivla.control.runner import run_episode
 from pivla.envs.rollout import episode_seed
-from pivla.policy import Calibration
+from pivla.policy import Policy
 
 
-def _executor(name: str, policy):
+@dataclass
+class ControlBenchConfig:
+    """AURD's per-step overhead against fixed horizon."""
+
+    policy: str | None = None
+    """A trained run directory (default: the default config, random weights)."""
+    steps: int = 200
+    """Controller-only steps per repeat."""
+    repeats: int = 5
+    """Rounds, alternating the two executors."""
+    loop_episodes: int = 5
+    """Also time whole episodes in the tabletop twin (0: controller only)."""
+    encoder_runtime: Literal["auto", "torch", "onnx"] = "auto"
+    """Where the target encoder runs (auto: ONNX Runtime on a CPU when installed); with ONNX Runtime, one
+    PyTorch encoding is timed too, for comparison."""
+    threads: int = 2
+    """Torch intra-op threads."""
+
+
+def _executor(name: str, policy: Policy):
     """Fixed horizon at the policy's nominal horizon (AURD's own default), so both plan alike, and without
     the trace-only monitoring (it would encode like AURD and hide AURD's cost)."""
-    return make_executor(name, horizon=policy.horizon, monitor=False) if name == "fixed" else make_executor(name)
+    if name == "fixed":
+        return make_executor(executor_config("fixed", horizon=policy.spec.horizon, monitor=False))
+    return make_executor(executor_config(name))
 
 
-def run_bench(args: argparse.Namespace) -> dict:
-    from pivla.cli.bench import default_policy, random_obs
-
-    torch.set_num_threads(getattr(args, "threads", 2))
-    policy = default_policy(getattr(args, "run", None), encoder_runtime=getattr(args, "encoder_runtime", "auto"))
+def run_control_bench(cfg: ControlBenchConfig) -> dict:
+    torch.set_num_threads(cfg.threads)
+    policy = default_policy(cfg.policy, encoder_runtime=cfg.encoder_runtime)
     # thresholds high enough that AURD completes every nominal horizon, also for a calibrated run (random
     # observations would make it replan): same queries as fixed, so the difference is exactly the per-step
     # encoding + decision overhead
     policy.calibration = Calibration(tau_low=1e9, tau_high=1e9, v_thresh=-1e9)
     rng = np.random.default_rng(0)
     observations = [random_obs(policy, rng) for _ in range(16)]
-    steps, repeats = args.steps, args.repeats
+    steps, repeats = cfg.steps, cfg.repeats
     per_step = {"fixed": [], "aurd": []}
     queries = {}
     for _ in range(repeats):
@@ -66,12 +88,12 @@ def run_bench(args: argparse.Namespace) -> dict:
         t0 = time.perf_counter()
         policy.encode(obs)
         t1 = time.perf_counter()
-        if t % policy.horizon == 0:
+        if t % policy.spec.horizon == 0:
             policy.infer(obs)
             query.append(time.perf_counter() - t1)
         encode.append(t1 - t0)
     other = _torch_encode_ms(policy, observations, steps)
-    loop = closed_loop(policy, args.loop_episodes, repeats) if args.loop_episodes > 0 else {}
+    loop = closed_loop(policy, cfg.loop_episodes, repeats) if cfg.loop_episodes > 0 else {}
     return {
         "fixed_ms_per_step": round(fixed * 1e3, 3),
         "aurd_ms_per_step": round(aurd * 1e3, 3),
@@ -92,8 +114,6 @@ def _torch_encode_ms(policy, observations: list[dict], steps: int) -> dict:
     """Median ms of one encoding with PyTorch when the policy encodes on ONNX Runtime (same weights, same
     observations): what the runtime saves, measured in the same run. A second ``Policy`` on the same model
     keeps PyTorch, so the ONNX graph is neither rebuilt nor reloaded."""
-    from pivla.policy import Policy
-
     if policy.encoder_runtime != "onnx":
         return {}
     torch_policy = Policy(policy.model, policy.stats, policy.text, device=policy.device, encoder_runtime="torch")

@@ -1,17 +1,12 @@
-"""Measurements of the twin: simulation speed (``pivla bench sim``) and servo repeatability.
-
-``run_bench(args)`` reads these attributes of ``args`` (all optional): ``image_size`` (96), ``steps`` (200
-env steps per repeat), ``repeats`` (5), ``episodes`` (10 collection episodes), ``suite`` ("pick_place"),
-``realism`` ("ideal"), ``seed`` (0), ``repeatability`` (bool: also measure servo repeatability),
-``expert_episodes`` (0: when > 0, also measure the scripted experts' success per suite and realism with
-that many episodes per task, cameras off).
-"""
+"""Simulation speed: environment steps per second with the policy's cameras (and, for LIBERO, without any),
+collection episodes per minute, and the twin's servo repeatability and experts' success."""
 
 from __future__ import annotations
 
 import statistics
 import time
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 
@@ -20,6 +15,36 @@ from pivla.envs.tabletop.env import TRANS_SCALE
 from pivla.envs.tabletop.expert import make_expert
 from pivla.envs.tabletop.servo import ServoConfig
 from pivla.envs.tabletop.tasks import get_suite
+
+
+@dataclass
+class SimBenchConfig:
+    """What to time."""
+
+    env: Literal["tabletop", "libero"] = "tabletop"
+    """The twin or LIBERO."""
+    suite: str | None = None
+    """Task suite (default: pick_place / libero_spatial)."""
+    task: int = 0
+    """LIBERO: the task whose scene is stepped."""
+    image_size: int | None = None
+    """Camera resolution (default: the recipe's 80 px on the twin, 128 on LIBERO)."""
+    cameras: tuple[str, ...] = ("agentview_rgb", "eye_in_hand_rgb")
+    """LIBERO: the cameras rendered."""
+    steps: int = 200
+    """Environment steps per repeat."""
+    repeats: int = 5
+    """Repeats (the median is reported)."""
+    episodes: int = 10
+    """Expert episodes timed (the cost of collection; 0: none)."""
+    realism: Literal["ideal", "servo"] = "ideal"
+    """Twin actuation."""
+    seed: int = 0
+    """Seed of the scenes and actions."""
+    repeatability: bool = False
+    """Twin: also measure servo repeatability."""
+    expert_episodes: int = 0
+    """Twin: also measure the experts' success per suite and realism with this many episodes per task."""
 
 
 def _steps_per_s(image_size: int, steps: int, repeats: int, seed: int) -> list[float]:
@@ -107,16 +132,14 @@ def expert_success(episodes: int, seed: int = 0, suites: tuple[str, ...] = ("pic
     return out
 
 
-def run_bench(args: Any) -> dict[str, Any]:
-    image_size = int(getattr(args, "image_size", None) or 96)
-    steps = int(getattr(args, "steps", None) or 200)
-    repeats = int(getattr(args, "repeats", None) or 5)
-    episodes = int(getattr(args, "episodes", None) or 10)
-    suite = getattr(args, "suite", None) or "pick_place"
-    realism = getattr(args, "realism", None) or "ideal"
-    seed = int(getattr(args, "seed", None) or 0)
-    rates = _steps_per_s(image_size, steps, repeats, seed)
-    per_min, success = _episodes_per_min(suite, episodes, image_size, realism, seed)
+def run_sim_bench(cfg: SimBenchConfig) -> dict[str, Any]:
+    return _libero(cfg) if cfg.env == "libero" else _tabletop(cfg)
+
+
+def _tabletop(cfg: SimBenchConfig) -> dict[str, Any]:
+    image_size, suite = cfg.image_size or 80, cfg.suite or "pick_place"
+    rates = _steps_per_s(image_size, cfg.steps, cfg.repeats, cfg.seed)
+    per_min, success = _episodes_per_min(suite, cfg.episodes, image_size, cfg.realism, cfg.seed)
     result: dict[str, Any] = {
         "steps_per_s": statistics.median(rates),
         "steps_per_s_runs": [round(r, 1) for r in rates],
@@ -125,10 +148,62 @@ def run_bench(args: Any) -> dict[str, Any]:
         "image_size": image_size,
         "cameras": 2,
         "suite": suite,
-        "realism": realism,
+        "realism": cfg.realism,
     }
-    if getattr(args, "repeatability", False):
-        result["servo_repeatability"] = measure_repeatability(seed=seed)
-    if getattr(args, "expert_episodes", 0):
-        result["expert_success_by_suite"] = expert_success(int(args.expert_episodes), seed=seed)
+    if cfg.repeatability:
+        result["servo_repeatability"] = measure_repeatability(seed=cfg.seed)
+    if cfg.expert_episodes:
+        result["expert_success_by_suite"] = expert_success(cfg.expert_episodes, seed=cfg.seed)
     return result
+
+
+def _rate(env: Any, steps: int, repeats: int, rng: np.random.Generator) -> tuple[list[float], float]:
+    rates, resets = [], []
+    for r in range(repeats):
+        t0 = time.perf_counter()
+        env.reset(options={"init_state": r})
+        resets.append(time.perf_counter() - t0)
+        actions = rng.uniform(-0.3, 0.3, size=(steps, 7))
+        t0 = time.perf_counter()
+        for a in actions:
+            env.step(a)
+        rates.append(steps / (time.perf_counter() - t0))
+    return rates, statistics.median(resets)
+
+
+def _expert_rate(env: Any, suite: str, task: int, episodes: int) -> dict:
+    """Scripted-expert episodes (official init states 0, 1, ...) per minute, frames rendered as when collecting."""
+    from pivla.envs.libero.expert import expert_actor, run_expert_episode
+
+    actor = expert_actor(suite, task)
+    t0 = time.perf_counter()
+    results = [run_expert_episode(env, actor, i) for i in range(episodes)]
+    elapsed = time.perf_counter() - t0
+    return {"expert_episodes": episodes, "expert_successes": sum(r["success"] for r in results),
+            "expert_episodes_per_min": round(60 * episodes / elapsed, 2),
+            "expert_steps_per_s": round(sum(r["steps"] for r in results) / elapsed, 2)}
+
+
+def _libero(cfg: SimBenchConfig) -> dict[str, Any]:
+    """Median steps/s over repeats, with cameras (policy resolution, reflections off) and without; one env
+    exists at a time (each LIBERO process holds ~2 GB); actions are small random deltas, so the arm moves."""
+    from pivla.envs.libero.env import make_env as make_libero
+
+    suite, size = cfg.suite or "libero_spatial", cfg.image_size or 128
+    rng = np.random.default_rng(cfg.seed)
+    out: dict[str, Any] = {"env": "libero", "suite": suite, "task": cfg.task, "steps": cfg.steps,
+                           "repeats": cfg.repeats, "image_size": size, "cameras": list(cfg.cameras)}
+    for label, kwargs in (("with_cameras", {"render": True}), ("no_cameras", {"render": False})):
+        t0 = time.perf_counter()
+        env = make_libero(suite, cfg.task, image_size=size, cameras=cfg.cameras, **kwargs)
+        create = time.perf_counter() - t0
+        try:
+            rates, reset = _rate(env, cfg.steps, cfg.repeats, rng)
+            if label == "with_cameras" and cfg.episodes > 0:
+                out.update(_expert_rate(env, suite, cfg.task, cfg.episodes))
+        finally:
+            env.close()
+        out[f"steps_per_s_{label}"] = round(statistics.median(rates), 2)
+        out[f"reset_s_{label}"] = round(reset, 3)
+        out[f"create_s_{label}"] = round(create, 2)
+    return out

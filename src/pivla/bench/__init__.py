@@ -1,0 +1,1 @@
+"""Benchmarks of pivla's components: library functions that take a typed config and return measured figures."""

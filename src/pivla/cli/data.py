@@ -1,0 +1,111 @@
+"""``pivla collect``, ``pivla export-video`` and ``pivla data convert``."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import tyro
+
+from pivla.control.executors import ExecutorConfig, FixedConfig
+from pivla.data.lerobot import ConvertConfig
+from pivla.envs.collect import CollectConfig
+
+log = logging.getLogger("pivla.collect")
+
+
+@dataclass
+class CollectCommand:
+    """Expert demonstrations; or, with --policy, rollouts of a trained policy, every one kept with its success
+    and rewards (failures teach the value head: ``pivla train --extra-data``)."""
+
+    demos: Annotated[CollectConfig, tyro.conf.arg(name="")]
+    policy: str | None = None
+    """Record rollouts of this run (or ws://HOST:PORT) instead of expert demonstrations."""
+    executor: ExecutorConfig = field(default_factory=FixedConfig)
+    """Executor of the policy rollouts (with --policy)."""
+
+
+def collect(cmd: CollectCommand) -> int:
+    cfg = cmd.demos
+    if cmd.policy is None:
+        from pivla.envs.collect import collect_demos
+
+        try:
+            return collect_demos(cfg)
+        except ValueError as e:
+            raise SystemExit(f"pivla collect: {e}") from e
+    expert_only = [flag for flag, given in (("--noise", cfg.noise), ("--miss", cfg.miss),
+                                             ("--paraphrase", cfg.paraphrase),
+                                             ("--image-size", cfg.image_size is not None)) if given]
+    if expert_only:
+        raise SystemExit(f"pivla collect: {', '.join(expert_only)} shape expert demonstrations, not --policy "
+                         "rollouts (they see what the policy was trained on)")
+    from pivla.evaluation.runner import EvalConfig, evaluate
+
+    ec = EvalConfig(policy=cmd.policy, out=str(Path(cfg.out) / "rollout_eval"), env=cfg.env, suite=cfg.suite,
+                    tasks=cfg.tasks, executor=cmd.executor, episodes=cfg.episodes, seed=cfg.seed,
+                    perturb=cfg.perturb, realism=cfg.realism, workers=cfg.workers, videos=0, record=cfg.out,
+                    split="train")
+    res = evaluate(ec)
+    log.info("recorded %d rollouts (%d successes) -> %s", res["episodes"], res["successes"], cfg.out)
+    return 0
+
+
+@dataclass
+class ExportVideoConfig:
+    """MP4 previews of a dataset's episodes, both cameras side by side."""
+
+    dataset: tyro.conf.Positional[str]
+    """Dataset directory (or one .hdf5 file)."""
+    out: str | None = None
+    """Output directory (default: <dataset>/videos)."""
+    max_episodes: int = 3
+    """Episodes per file."""
+    fps: int = 10
+    """Frames per second."""
+    scale: int = 3
+    """Integer upscaling of the frames."""
+
+
+def export_video(cfg: ExportVideoConfig) -> int:
+    from pivla.data.format import DatasetError, dataset_files, read_episodes
+    from pivla.io import write_mp4
+
+    try:
+        files = dataset_files(cfg.dataset)
+    except DatasetError as e:
+        raise SystemExit(f"pivla export-video: {e}") from e
+    root = Path(cfg.dataset)
+    out = Path(cfg.out) if cfg.out else (root if root.is_dir() else root.parent) / "videos"
+    out.mkdir(parents=True, exist_ok=True)
+    written = 0
+    for path in files:
+        for i, ep in enumerate(read_episodes(path)[: cfg.max_episodes]):
+            views = [ep.obs[k] for k in ("agentview_rgb", "eye_in_hand_rgb") if k in ep.obs]
+            height = max(v.shape[1] for v in views)
+            views = [np.pad(v, ((0, 0), (0, height - v.shape[1]), (0, 0), (0, 0))) for v in views]
+            frames = np.concatenate(views, axis=2)
+            frames = frames.repeat(cfg.scale, axis=1).repeat(cfg.scale, axis=2)
+            frames = frames[:, : frames.shape[1] // 2 * 2, : frames.shape[2] // 2 * 2]
+            target = out / f"{path.stem}_{i}.mp4"
+            write_mp4(target, frames, cfg.fps)
+            written += 1
+            log.info("%s (%s, %d steps, success=%s)", target, ep.instruction, len(ep), ep.success)
+    log.info("wrote %d videos to %s", written, out)
+    return 0
+
+
+def convert(cfg: ConvertConfig) -> int:
+    from pivla.data.format import DatasetError
+    from pivla.data.lerobot import run_convert
+
+    try:
+        res = run_convert(cfg)
+    except DatasetError as e:
+        raise SystemExit(f"pivla data convert: {e}") from e
+    print(f"{res.source_format} -> {cfg.to}: {res.episodes} episodes, {res.frames} frames at {res.fps} fps -> {res.dst}")
+    return 0

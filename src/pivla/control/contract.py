@@ -1,0 +1,101 @@
+"""The policy contract: what executors, the evaluation runner, the robot loop and a remote client may call.
+
+A local :class:`pivla.policy.Policy` and a :class:`pivla.serving.RemotePolicy` both satisfy
+:class:`ChunkPolicy`; executors depend on this protocol, never on a concrete class. Nothing here imports
+torch, so the control layer runs on a robot laptop that has only NumPy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+# Eq. 13's weight of U_act in U when nothing was calibrated (METHOD.md "AURD")
+DEFAULT_ETA = 0.7
+
+
+@dataclass
+class Calibration:
+    """Executor thresholds calibrated on validation data (never on test episodes): AURD's, and the same
+    percentiles of U_act alone for AdaHorizon (None in files written before they existed)."""
+
+    tau_low: float
+    tau_high: float
+    v_thresh: float
+    eta: float = DEFAULT_ETA
+    source: str = ""
+    act_low: float | None = None  # P(tau_low_pct) of U_act: AdaHorizon extends below it
+    act_high: float | None = None  # P(tau_high_pct) of U_act: AdaHorizon replans above it
+    pred_baseline: str = "none"  # how U_pred was measured when calibrating; AURD uses the same by default
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """What a policy reads and returns, enough for a client to build observations without its files.
+
+    ``cameras``: image keys, each an (image_size, image_size, 3) uint8 picture (other sizes are resized);
+    ``proprio``: proprioceptive keys with their lengths; an ``instruction`` string completes an observation.
+    """
+
+    cameras: tuple[str, ...]
+    image_size: int
+    proprio: tuple[tuple[str, int], ...]
+    chunk: int  # K, actions per plan
+    horizon: int  # H, AURD's nominal horizon and the value head's length
+    action_dim: int = 7
+    # the meaning of an action row: end-effector position and orientation deltas, then the gripper
+    # (-1 open, +1 closed), in the environment's own units
+    action_space: str = "ee_delta_pos3_rot3_gripper1"
+    latent_dim: int = 0
+    target_cameras: int = 1  # leading cameras the target encoder reads (AURD's observed latent)
+    extra: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
+
+    @property
+    def proprio_keys(self) -> tuple[str, ...]:
+        return tuple(k for k, _ in self.proprio)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"cameras": list(self.cameras), "image_size": self.image_size,
+                "proprio": [[k, n] for k, n in self.proprio], "chunk": self.chunk, "horizon": self.horizon,
+                "action_dim": self.action_dim, "action_space": self.action_space, "latent_dim": self.latent_dim,
+                "target_cameras": self.target_cameras, "extra": dict(self.extra)}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> PolicySpec:
+        return cls(cameras=tuple(d["cameras"]), image_size=int(d["image_size"]),
+                   proprio=tuple((str(k), int(n)) for k, n in d["proprio"]), chunk=int(d["chunk"]),
+                   horizon=int(d["horizon"]), action_dim=int(d.get("action_dim", 7)),
+                   action_space=str(d.get("action_space", cls.action_space)), latent_dim=int(d.get("latent_dim", 0)),
+                   target_cameras=int(d.get("target_cameras", 1)), extra=dict(d.get("extra", {})))
+
+
+@runtime_checkable
+class ChunkPolicy(Protocol):
+    """A chunking policy as the control loop sees it.
+
+    ``infer(obs)`` returns at least: ``actions`` (K, D) physical, ``actions_normalized`` (K, D), ``u_act``
+    (K,) (Eq. 13), ``latents`` (K, d_z) predicted next-observation latents, ``values`` (H,).
+    ``encode(obs)`` is Enc(o), the target encoder's latent of one observation in the units of ``latents``.
+    ``to_actions`` maps normalized actions to physical ones (temporal ensembling averages in normalized space).
+    """
+
+    spec: PolicySpec
+    calibration: Calibration | None
+
+    def infer(self, obs: Mapping[str, Any]) -> dict[str, np.ndarray]: ...
+
+    def encode(self, obs: Mapping[str, Any]) -> np.ndarray: ...
+
+    def to_actions(self, normalized: np.ndarray) -> np.ndarray: ...
+
+
+@runtime_checkable
+class BatchPolicy(ChunkPolicy, Protocol):
+    """A policy that also answers in batches (calibration replays whole validation episodes)."""
+
+    def infer_batch(self, obs_list: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]: ...
+
+    def encode_batch(self, obs_list: Sequence[Mapping[str, Any]]) -> np.ndarray: ...

@@ -1,0 +1,218 @@
+"""Scripted-expert demonstrations into a LIBERO-layout dataset (one HDF5 file per task), on the simulated twin
+or on LIBERO itself. ``pivla collect`` and ``pivla demo`` call :func:`collect_demos`.
+
+Failed expert episodes are replaced by the next seeds of the same task, in rounds over all tasks, so the
+dataset depends on the seed only, never on the number of worker processes.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import multiprocessing as mp
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from pivla.data.format import write_episodes
+from pivla.envs import seeds, select_tasks
+from pivla.envs.rollout import episode_seed, run_episode, run_jobs
+
+log = logging.getLogger(__name__)
+
+DEFAULT_IMAGE_SIZE = {"tabletop": 80, "libero": 128}
+
+
+@dataclass
+class CollectConfig:
+    """Expert demonstrations of a task suite."""
+
+    out: str
+    """Output dataset directory."""
+    suite: str = "pick_place"
+    """tabletop: pick_place, pick_place_seen, pick_place_unseen, drawer, stack, long; libero: libero_spatial,
+    libero_object, libero_goal, libero_10, ..."""
+    env: Literal["tabletop", "libero"] = "tabletop"
+    """The simulated twin, or LIBERO (privileged-state scripted experts)."""
+    tasks: str | None = None
+    """Task indices or names, comma-separated (default: all)."""
+    episodes: int = 50
+    """Successful episodes per task."""
+    seed: int = 0
+    """Seed of the episodes when no seed family is given."""
+    seed_family: Literal["train", "validation"] | None = None
+    """Seed attempt k of a task from this family (pivla.envs.seeds, condition in_distribution) instead of --seed:
+    demonstrations that share no seed with any validation or test episode, by construction."""
+    perturb: str | None = None
+    """Twin perturbation spec, e.g. randomized_scene or unseen_env,static_distractors,level=3 (docs/twin.md)."""
+    workers: int = 1
+    """Worker processes (results do not depend on it)."""
+    realism: Literal["ideal", "servo"] = "ideal"
+    """Twin actuation: ideal, or hobby-servo backlash, deadband and noise."""
+    image_size: int | None = None
+    """Camera resolution in px (default: tabletop 80, the recipe's; libero 128)."""
+    noise: float = 0.0
+    """Noise on the expert's executed actions (std, action units); labels stay clean (DART)."""
+    miss: float = 0.0
+    """Share of episodes whose first grasp is executed off the object, so the demonstrations show reopening
+    and grasping again (labels stay clean)."""
+    paraphrase: bool = False
+    """Draw an instruction paraphrase per episode."""
+    keep_failures: bool = False
+    """Keep failed expert episodes instead of replacing them with new seeds."""
+    libero_init: Literal["official", "random"] = "random"
+    """LIBERO: scenes sampled (seeded) from the task's placement regions, or the official init states 0, 1, ...
+    (which the benchmark evaluates on: demonstrations from them train on the test states)."""
+
+    @property
+    def size(self) -> int:
+        return self.image_size or DEFAULT_IMAGE_SIZE[self.env]
+
+
+def collect_demos(cfg: CollectConfig) -> int:
+    """Collect, write one file per task; returns 0, or 1 when a task got fewer successful episodes than asked."""
+    if cfg.episodes < 1:
+        raise ValueError("episodes must be >= 1")
+    if cfg.env == "libero":
+        return _collect_libero(cfg)
+    from pivla.envs.tabletop import make_env, parse_perturb
+    from pivla.envs.tabletop.env import CONTROL_HZ, ROT_SCALE, TRANS_SCALE
+    from pivla.envs.tabletop.expert import make_expert
+
+    perturb = parse_perturb(cfg.perturb)
+    specs = select_tasks(cfg.env, cfg.suite, cfg.tasks)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    expert = make_expert(cfg.noise, cfg.miss)
+    factories = {
+        spec.name: functools.partial(make_env, cfg.suite, spec.name, image_size=cfg.size, realism=cfg.realism,
+                                     perturb=perturb.spec(), paraphrase=cfg.paraphrase)
+        for spec in specs
+    }
+    task_seeds = {spec.name: episode_seed(cfg.seed, spec.index) for spec in specs}
+
+    def attempt_seed(name: str, k: int) -> int:
+        if cfg.seed_family is not None:
+            return seeds.seed_for(cfg.seed_family, "in_distribution", name, k)
+        return episode_seed(task_seeds[name], k)
+
+    kept: dict[str, list] = {spec.name: [] for spec in specs}
+    attempts = dict.fromkeys(task_seeds, 0)
+    budget = 3 * cfg.episodes + 10
+    while True:
+        jobs, owners = [], []
+        for name in kept:
+            need = cfg.episodes - len(kept[name])
+            if need <= 0 or attempts[name] >= budget:
+                continue
+            for i in range(need):
+                jobs.append((factories[name], attempt_seed(name, attempts[name] + i)))
+                owners.append(name)
+            attempts[name] += need
+        if not jobs:
+            break
+        for name, ep in zip(owners, run_jobs(jobs, expert, workers=cfg.workers, desc="collect")):
+            if ep.success or cfg.keep_failures:
+                kept[name].append(ep)
+    status = 0
+    for spec in specs:
+        episodes = kept[spec.name]
+        n_success = sum(e.success for e in episodes)
+        rate = (n_success if cfg.keep_failures else len(episodes)) / attempts[spec.name]
+        if not episodes:
+            log.error("%s: the expert failed all %d attempts; nothing written", spec.name, attempts[spec.name])
+            status = 1
+            continue
+        env_meta = {
+            "env": cfg.env, "suite": cfg.suite, "task": spec.name, "task_index": spec.index,
+            "instruction": spec.instruction, "max_steps": spec.max_steps, "realism": cfg.realism,
+            "perturb": perturb.spec(), "image_size": cfg.size, "control_hz": CONTROL_HZ,
+            "action": {"translation_m_per_unit": TRANS_SCALE, "rotation_rad_per_unit": ROT_SCALE,
+                       "gripper": "-1 open, +1 closed"},
+            "seed": cfg.seed, "seed_family": cfg.seed_family, "noise": cfg.noise, "miss": cfg.miss,
+            "attempts": attempts[spec.name],
+        }
+        path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta)
+        log.info("%s: %d episodes (%d steps) -> %s; expert success %.1f%% over %d attempts", spec.name,
+                 len(episodes), sum(len(e) for e in episodes), path, 100 * rate, attempts[spec.name])
+        if len(episodes) < cfg.episodes:
+            log.error("%s: only %d of %d successful episodes after %d attempts", spec.name, len(episodes),
+                      cfg.episodes, attempts[spec.name])
+            status = 1
+    return status
+
+
+def _collect_libero(cfg: CollectConfig) -> int:
+    """LIBERO demonstrations by the privileged-state scripted experts, one file per task; ``workers`` spreads
+    whole tasks over processes (each LIBERO process holds ~2 GB)."""
+    from pivla.envs.libero import expert_actor
+
+    unsupported = {"perturb (use a LIBERO-PRO suite)": cfg.perturb, "paraphrase (use a *_lan suite)": cfg.paraphrase,
+                   "realism servo": cfg.realism != "ideal"}
+    given = [flag for flag, value in unsupported.items() if value]
+    if given:
+        raise ValueError(f"not supported with env libero: {', '.join(given)}")
+    specs = select_tasks("libero", cfg.suite, cfg.tasks)
+    for spec in specs:
+        expert_actor(cfg.suite, spec.index)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(cfg, spec.index) for spec in specs]
+    if cfg.workers > 1 and len(jobs) > 1:
+        with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs))) as pool:
+            results = pool.map(_collect_libero_task, jobs)
+    else:
+        results = [_collect_libero_task(job) for job in jobs]
+    status = 0
+    for spec, (episodes, attempts) in zip(specs, results):
+        n_success = sum(e.success for e in episodes)
+        if not episodes:
+            log.error("%s: the expert failed all %d attempts; nothing written", spec.name, attempts)
+            status = 1
+            continue
+        env_meta = {
+            "env": "libero", "suite": cfg.suite, "task": spec.name, "task_index": spec.index,
+            "instruction": spec.instruction, "max_steps": spec.max_steps, "image_size": cfg.size,
+            "control_hz": 20, "action": {"space": "OSC_POSE deltas", "translation_m_per_unit": 0.05,
+                                         "rotation_rad_per_unit": 0.5, "gripper": "-1 open, +1 closed"},
+            "seed": cfg.seed, "attempts": attempts, "expert": "scripted, privileged simulator state",
+            "init": cfg.libero_init, "noise": cfg.noise, "miss": cfg.miss,
+            "init_states": [e.meta["init_state"] for e in episodes],
+            "init_seeds": [e.meta["init_seed"] for e in episodes],
+        }
+        path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta)
+        log.info("%s: %d episodes (%d steps) -> %s; expert success %d/%d attempts", spec.name, len(episodes),
+                 sum(len(e) for e in episodes), path, n_success, attempts)
+        if not cfg.keep_failures and len(episodes) < cfg.episodes:
+            log.error("%s: only %d of %d successful episodes after %d attempts", spec.name, len(episodes),
+                      cfg.episodes, attempts)
+            status = 1
+    return status
+
+
+def _collect_libero_task(job: tuple[CollectConfig, int]) -> tuple[list, int]:
+    """(episodes kept, attempts) for one LIBERO task; runs in a worker process when ``workers > 1``. Attempt
+    ``k`` plays the scene sampled with seed (seed, task, k), or official init state ``k`` (mod 50)."""
+    from pivla.envs import make_env
+    from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
+
+    cfg, task = job
+    env = make_env("libero", cfg.suite, task, image_size=cfg.size, render=True, init_state=0, init=cfg.libero_init)
+    actor = RolloutExpert(cfg.suite, task, ExpertConfig(noise=cfg.noise, miss=cfg.miss))
+    wanted = cfg.episodes
+    budget = wanted if cfg.keep_failures else 3 * wanted + 10
+    kept, attempts = [], 0
+    try:
+        while len(kept) < wanted and attempts < budget:
+            ep = run_episode(env, actor, episode_seed(episode_seed(cfg.seed, task), attempts))
+            ep.meta["init_state"] = env.init_state
+            ep.meta["init_seed"] = env.init_seed
+            attempts += 1
+            if ep.success or cfg.keep_failures:
+                kept.append(ep)
+            log.info("%s task %d %s: %s in %d steps", cfg.suite, task,
+                     f"init state {env.init_state}" if env.init_state is not None else f"scene seed {env.init_seed}",
+                     "success" if ep.success else "failure", len(ep))
+    finally:
+        env.close()
+    return kept, attempts

@@ -1,0 +1,187 @@
+"""``pivla libero run``: one LIBERO suite end to end on the official protocol, resumable stage by stage.
+
+1. **collect**: N scripted-expert demonstrations per task from scenes sampled (seeded) from the task's BDDL
+   placement regions, never from the official init states; with the twin's variety (DART noise, recovered
+   missed grasps);
+2. **train**: the validated recipe at LIBERO's cameras and proprio (``--preset libero``);
+3. **calibrate**: AURD's thresholds from the policy's own fixed-horizon rollouts on sampled scenes;
+4. **evaluate**: every executor on every official init state of every task (50 per task), paired by state;
+5. **report**: ``DIR/libero.md`` and ``DIR/libero.json``: per task and suite success with Wilson intervals,
+   AURD against each executor paired by init state, the failure AUROC of U, and published figures beside ours.
+
+Every stage writes under ``DIR`` and is skipped when its output exists; an interrupted evaluation continues
+from its last finished episode. Progress goes to the log (``nohup pivla libero run ... > DIR/log &``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pivla.control.calibrate import CalibrationConfig
+from pivla.control.executors import executor_config
+from pivla.envs.collect import CollectConfig, collect_demos
+from pivla.evaluation.protocol import calibrate_on_rollouts, validation_rollouts
+from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
+from pivla.evaluation.stats import compare, paired_successes, wilson_interval
+from pivla.io import atomic_write_bytes, atomic_write_json
+from pivla.training.config import TrainConfig, libero_preset
+
+log = logging.getLogger(__name__)
+
+# Published success rates (%), Spatial / Object / Goal / Long (LIBERO-10)
+PUBLISHED = {
+    "PI-VLA (paper, Table 1)": {"libero_spatial": 79.5, "libero_object": 73.4, "libero_goal": 73.3, "libero_10": 66.6},
+    "OpenVLA-OFT": {"libero_spatial": 97.6, "libero_object": 98.4, "libero_goal": 97.9, "libero_10": 94.5},
+    "pi0": {"libero_spatial": 96.8, "libero_object": 98.8, "libero_goal": 95.8, "libero_10": 85.2},
+    "OpenVLA": {"libero_spatial": 84.7, "libero_object": 88.4, "libero_goal": 79.2, "libero_10": 53.7},
+}
+OFFICIAL_INIT_STATES = 50
+
+
+@dataclass
+class LiberoRunConfig:
+    """One LIBERO suite: demonstrations, training, calibration, evaluation on the official init states."""
+
+    suite: str
+    """libero_spatial, libero_object, libero_goal or libero_10."""
+    out: str
+    """Directory of the whole run (data/, policy/, eval/, libero.md)."""
+    tasks: str | None = None
+    """Task indices, comma-separated (default: all ten)."""
+    demos: int = 50
+    """Demonstrations per task (LIBERO's own datasets have 50)."""
+    seed: int = 0
+    """Seed of the sampled demonstration scenes and of training; validation scenes use seed + 1."""
+    noise: float = 0.3
+    """DART: noise on the expert's executed actions, clean labels (as the twin's demo)."""
+    miss: float = 0.3
+    """Share of demonstrations whose first grasp misses and is recovered (as the twin's demo)."""
+    train: TrainConfig = field(default_factory=libero_preset)
+    """Training (the recipe at LIBERO's cameras and proprio; data and out are set by the run)."""
+    val_episodes: int = 5
+    """Validation rollouts per task on sampled scenes, for calibration."""
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    """AURD's calibration."""
+    executors: tuple[str, ...] = ("fixed", "aurd")
+    """Executors evaluated on the official init states (add ensemble, adahorizon when time allows)."""
+    init_states: int = OFFICIAL_INIT_STATES
+    """Official init states per task, from 0 (50: the whole protocol)."""
+    workers: int = 2
+    """Worker processes (each LIBERO process holds ~2 GB)."""
+    max_steps: int | None = None
+    """Step limit per episode (default: the suite's, OpenVLA-OFT's 220 / 280 / 300 / 520)."""
+
+
+def _stage(name: str, done: bool) -> bool:
+    log.info("[%s] %s", name, "already done, skipping" if done else "...")
+    return not done
+
+
+def _collected(data: Path, n_tasks: int) -> bool:
+    return data.is_dir() and len(list(data.glob("*_demo.hdf5"))) >= n_tasks
+
+
+def run_libero(cfg: LiberoRunConfig) -> Path:
+    """Run (or resume) every stage; returns the path of libero.md."""
+    from pivla.envs import select_tasks
+    from pivla.training.trainer import train
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    data, run = out / "data", out / "policy"
+    tasks = select_tasks("libero", cfg.suite, cfg.tasks)
+    timings: dict[str, float] = json.loads((out / "timings.json").read_text()) if (out / "timings.json").exists() else {}
+
+    def timed(name: str, fn) -> None:
+        t = time.time()
+        fn()
+        timings[name] = round(timings.get(name, 0.0) + time.time() - t, 1)
+        atomic_write_json(out / "timings.json", timings)
+
+    if _stage("collect", _collected(data, len(tasks))):
+        for spec in tasks:  # task by task, so an interruption keeps the finished tasks
+            if (data / f"{spec.name}_demo.hdf5").exists():
+                continue
+            demos = CollectConfig(out=str(data), suite=cfg.suite, env="libero", tasks=str(spec.index),
+                                  episodes=cfg.demos, seed=cfg.seed, workers=1, image_size=cfg.train.model.image_size,
+                                  noise=cfg.noise, miss=cfg.miss, libero_init="random")
+            timed("collect", lambda: collect_demos(demos))
+    status = run / "status.json"
+    if _stage("train", status.exists() and json.loads(status.read_text()).get("done", False)):
+        tc = dataclasses.replace(cfg.train, data=str(data), out=str(run), seed=cfg.seed, progress=False)
+        timed("train", lambda: train(tc, resume=(run / "checkpoints").exists()))
+    rollouts = out / "val_rollouts"
+    if _stage("validation rollouts", (out / "val_rollouts_eval" / "results.json").exists()):
+        timed("validation_rollouts", lambda: validation_rollouts(
+            run, rollouts, out / "val_rollouts_eval", cfg.val_episodes, cfg.seed + 1, "ideal", cfg.workers,
+            env="libero", suite=cfg.suite, tasks=cfg.tasks, max_steps=cfg.max_steps, libero_init="random"))
+    if _stage("calibrate", (run / "calibration.json").exists()):
+        timed("calibrate", lambda: calibrate_on_rollouts(run, rollouts, data, cfg.calibration))
+    for name in cfg.executors:
+        target = out / "eval" / name
+        if _stage(f"eval {name}", (target / "results.json").exists()
+                  and json.loads((target / "results.json").read_text())["episodes"] >= cfg.init_states * len(tasks)):
+            ec = EvalConfig(policy=str(run), out=str(target), env="libero", suite=cfg.suite, tasks=cfg.tasks,
+                            executor=executor_config(name), episodes=cfg.init_states, first_init_state=0,
+                            seed=cfg.seed + 1000, workers=cfg.workers, videos=2, max_steps=cfg.max_steps)
+            timed(f"eval_{name}", lambda: evaluate(ec))
+    return write_libero_report(out, cfg.suite, timings)
+
+
+def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None = None) -> Path:
+    """libero.md and libero.json from the evaluations under ``out/eval``."""
+    evals = {d.name: d for d in sorted((out / "eval").iterdir()) if (d / "results.json").exists()}
+    results = {name: json.loads((d / "results.json").read_text()) for name, d in evals.items()}
+    rows = {name: load_rows(d / "episodes.jsonl") for name, d in evals.items()}
+    report: dict = {"suite": suite, "executors": {}, "paired": {}, "published": {k: v.get(suite) for k, v in PUBLISHED.items()},
+                    "timings_s": timings or {}}
+    for name, res in results.items():
+        report["executors"][name] = {
+            "success_rate": res["success_rate"], "ci95": res["ci95"], "successes": res["successes"],
+            "episodes": res["episodes"], "per_task": res["per_task"], "failure_prediction": res["failure_prediction"],
+            "mean_executed_horizon": res["mean_executed_horizon"], "replans": res["replans"], "prunes": res["prunes"],
+            "pauses": res["pauses"], "control_hz": res["control_hz"],
+        }
+    if "aurd" in rows:
+        for name in rows:
+            if name != "aurd":
+                report["paired"][f"aurd_vs_{name}"] = compare(*paired_successes(rows["aurd"], rows[name]))
+    atomic_write_json(out / "libero.json", report)
+    names = list(results)
+    tasks = sorted({t for r in results.values() for t in r["per_task"]})
+    lines = [f"# {suite}: official protocol", "",
+             "Every official init state of every task, one episode each per executor (paired by init state); "
+             "the policy trained on demonstrations from sampled scenes only. Success with 95% Wilson intervals.", "",
+             "| task | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    for t in tasks:
+        cells = []
+        for n in names:
+            pt = results[n]["per_task"].get(t)
+            cells.append(f"{100 * pt['success_rate']:.0f}% ({round(pt['success_rate'] * pt['episodes'])}/{pt['episodes']})"
+                         if pt else "-")
+        lines.append(f"| {t} | " + " | ".join(cells) + " |")
+    totals = []
+    for n in names:
+        lo, hi = wilson_interval(results[n]["successes"], results[n]["episodes"])
+        totals.append(f"**{100 * results[n]['success_rate']:.1f}%** [{100 * lo:.1f}, {100 * hi:.1f}]")
+    lines += ["| **suite** | " + " | ".join(totals) + " |", ""]
+    for key, cmp in report["paired"].items():
+        lo, hi = cmp["ci95"]
+        lines.append(f"- {key.replace('_', ' ')}: {cmp['successes_a']} / {cmp['successes_b']} of {cmp['n']} paired "
+                     f"episodes ({cmp['b']} / {cmp['c']} discordant), {100 * cmp['diff']:+.1f} points "
+                     f"[{100 * lo:+.1f}, {100 * hi:+.1f}] (Newcombe paired), exact McNemar p {cmp['p_mcnemar']:.3g}")
+    for n in names:
+        fp = results[n].get("failure_prediction") or {}
+        if fp.get("auroc_u_max") is not None:
+            lines.append(f"- {n}: AUROC of the episode's max U for failure {fp['auroc_u_max']:.2f}, of -min V "
+                         f"{fp['auroc_neg_v_min']:.2f}")
+    lines += ["", "Published figures on the same suite: " + ", ".join(
+        f"{k} {v}%" for k, v in report["published"].items() if v is not None) + "."]
+    path = out / "libero.md"
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
+    return path
