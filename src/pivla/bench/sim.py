@@ -31,6 +31,8 @@ class SimBenchConfig:
     """Camera resolution (default: the recipe's 80 px on the twin, 128 on LIBERO)."""
     cameras: tuple[str, ...] = ("agentview_rgb", "eye_in_hand_rgb")
     """LIBERO: the cameras rendered."""
+    reflections: bool = False
+    """LIBERO: render reflections (robosuite's default; the policy's envs switch them off)."""
     steps: int = 200
     """Environment steps per repeat."""
     repeats: int = 5
@@ -185,17 +187,19 @@ def _expert_rate(env: Any, suite: str, task: int, episodes: int) -> dict:
 
 
 def _libero(cfg: SimBenchConfig) -> dict[str, Any]:
-    """Median steps/s over repeats, with cameras (policy resolution, reflections off) and without; one env
+    """Median steps/s over repeats, with cameras (by default the policy's resolution, reflections off) and without; one env
     exists at a time (each LIBERO process holds ~2 GB); actions are small random deltas, so the arm moves."""
     from pivla.envs.libero.env import make_env as make_libero
 
     suite, size = cfg.suite or "libero_spatial", cfg.image_size or 128
     rng = np.random.default_rng(cfg.seed)
     out: dict[str, Any] = {"env": "libero", "suite": suite, "task": cfg.task, "steps": cfg.steps,
-                           "repeats": cfg.repeats, "image_size": size, "cameras": list(cfg.cameras)}
+                           "repeats": cfg.repeats, "image_size": size, "cameras": list(cfg.cameras),
+                           "reflections": cfg.reflections}
     for label, kwargs in (("with_cameras", {"render": True}), ("no_cameras", {"render": False})):
         t0 = time.perf_counter()
-        env = make_libero(suite, cfg.task, image_size=size, cameras=cfg.cameras, **kwargs)
+        env = make_libero(suite, cfg.task, image_size=size, cameras=cfg.cameras, reflections=cfg.reflections,
+                          **kwargs)
         create = time.perf_counter() - t0
         try:
             rates, reset = _rate(env, cfg.steps, cfg.repeats, rng)

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Literal
 
 from pivla.data.format import write_episodes
-from pivla.envs import seeds, select_tasks
+from pivla.envs import TaskSpec, seeds, select_tasks
 from pivla.envs.rollout import episode_seed, run_episode, run_jobs
 
 log = logging.getLogger(__name__)
@@ -158,40 +158,44 @@ def _collect_libero(cfg: CollectConfig) -> int:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(cfg, spec.index) for spec in specs]
+    by_index = {spec.index: spec for spec in specs}
     if cfg.workers > 1 and len(jobs) > 1:
         with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs))) as pool:
-            results = pool.map(_collect_libero_task, jobs)
-    else:
-        results = [_collect_libero_task(job) for job in jobs]
-    status = 0
-    for spec, (episodes, attempts) in zip(specs, results):
-        n_success = sum(e.success for e in episodes)
-        if not episodes:
-            log.error("%s: the expert failed all %d attempts; nothing written", spec.name, attempts)
-            status = 1
-            continue
-        env_meta = {
-            "env": "libero", "suite": cfg.suite, "task": spec.name, "task_index": spec.index,
-            "instruction": spec.instruction, "max_steps": spec.max_steps, "image_size": cfg.size,
-            "control_hz": 20, "action": {"space": "OSC_POSE deltas", "translation_m_per_unit": 0.05,
-                                         "rotation_rad_per_unit": 0.5, "gripper": "-1 open, +1 closed"},
-            "seed": cfg.seed, "attempts": attempts, "expert": "scripted, privileged simulator state",
-            "init": cfg.libero_init, "noise": cfg.noise, "miss": cfg.miss,
-            "init_states": [e.meta["init_state"] for e in episodes],
-            "init_seeds": [e.meta["init_seed"] for e in episodes],
-        }
-        path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta)
-        log.info("%s: %d episodes (%d steps) -> %s; expert success %d/%d attempts", spec.name, len(episodes),
-                 sum(len(e) for e in episodes), path, n_success, attempts)
-        if not cfg.keep_failures and len(episodes) < cfg.episodes:
-            log.error("%s: only %d of %d successful episodes after %d attempts", spec.name, len(episodes),
-                      cfg.episodes, attempts)
-            status = 1
-    return status
+            # Each task's file is written as soon as that task finishes, so an interruption keeps it.
+            return max([_write_libero_task(cfg, by_index[task], episodes, attempts)
+                        for task, episodes, attempts in pool.imap_unordered(_collect_libero_task, jobs)])
+    return max([_write_libero_task(cfg, spec, *_collect_libero_task(job)[1:]) for spec, job in zip(specs, jobs)])
 
 
-def _collect_libero_task(job: tuple[CollectConfig, int]) -> tuple[list, int]:
-    """(episodes kept, attempts) for one LIBERO task; runs in a worker process when ``workers > 1``. Attempt
+def _write_libero_task(cfg: CollectConfig, spec: TaskSpec, episodes: list, attempts: int) -> int:
+    """Write one task's demonstrations; 0, or 1 when the expert fell short of ``cfg.episodes``."""
+    out = Path(cfg.out)
+    n_success = sum(e.success for e in episodes)
+    if not episodes:
+        log.error("%s: the expert failed all %d attempts; nothing written", spec.name, attempts)
+        return 1
+    env_meta = {
+        "env": "libero", "suite": cfg.suite, "task": spec.name, "task_index": spec.index,
+        "instruction": spec.instruction, "max_steps": spec.max_steps, "image_size": cfg.size,
+        "control_hz": 20, "action": {"space": "OSC_POSE deltas", "translation_m_per_unit": 0.05,
+                                     "rotation_rad_per_unit": 0.5, "gripper": "-1 open, +1 closed"},
+        "seed": cfg.seed, "attempts": attempts, "expert": "scripted, privileged simulator state",
+        "init": cfg.libero_init, "noise": cfg.noise, "miss": cfg.miss,
+        "init_states": [e.meta["init_state"] for e in episodes],
+        "init_seeds": [e.meta["init_seed"] for e in episodes],
+    }
+    path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta)
+    log.info("%s: %d episodes (%d steps) -> %s; expert success %d/%d attempts", spec.name, len(episodes),
+             sum(len(e) for e in episodes), path, n_success, attempts)
+    if not cfg.keep_failures and len(episodes) < cfg.episodes:
+        log.error("%s: only %d of %d successful episodes after %d attempts", spec.name, len(episodes),
+                  cfg.episodes, attempts)
+        return 1
+    return 0
+
+
+def _collect_libero_task(job: tuple[CollectConfig, int]) -> tuple[int, list, int]:
+    """(task, episodes kept, attempts) for one LIBERO task; runs in a worker process when ``workers > 1``. Attempt
     ``k`` plays the scene sampled with seed (seed, task, k), or official init state ``k`` (mod 50)."""
     from pivla.envs import make_env
     from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
@@ -215,4 +219,4 @@ def _collect_libero_task(job: tuple[CollectConfig, int]) -> tuple[list, int]:
                      "success" if ep.success else "failure", len(ep))
     finally:
         env.close()
-    return kept, attempts
+    return task, kept, attempts

@@ -104,13 +104,13 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
         atomic_write_json(out / "timings.json", timings)
 
     if _stage("collect", _collected(data, len(tasks))):
-        for spec in tasks:  # task by task, so an interruption keeps the finished tasks
-            if (data / f"{spec.name}_demo.hdf5").exists():
-                continue
-            demos = CollectConfig(out=str(data), suite=cfg.suite, env="libero", tasks=str(spec.index),
-                                  episodes=cfg.demos, seed=cfg.seed, workers=1, image_size=cfg.train.model.image_size,
-                                  noise=cfg.noise, miss=cfg.miss, libero_init="random")
-            timed("collect", lambda: collect_demos(demos))
+        # Whole tasks spread over the workers; a finished task's file is kept, so a rerun collects the rest.
+        missing = [str(spec.index) for spec in tasks if not (data / f"{spec.name}_demo.hdf5").exists()]
+        demos = CollectConfig(out=str(data), suite=cfg.suite, env="libero", tasks=",".join(missing),
+                              episodes=cfg.demos, seed=cfg.seed, workers=cfg.workers,
+                              image_size=cfg.train.model.image_size, noise=cfg.noise, miss=cfg.miss,
+                              libero_init="random")
+        timed("collect", lambda: collect_demos(demos))
     status = run / "status.json"
     if _stage("train", status.exists() and json.loads(status.read_text()).get("done", False)):
         tc = dataclasses.replace(cfg.train, data=str(data), out=str(run), seed=cfg.seed, progress=False)
