@@ -247,3 +247,16 @@ def test_ensemble_traces_the_error_of_the_previous_query():
 
 def test_the_scripted_policy_satisfies_the_contract_executors_rely_on():
     assert isinstance(ScriptedPolicy(), ChunkPolicy)
+
+
+@pytest.mark.parametrize("name", ["fixed", "ensemble", "adahorizon", "aurd"])
+def test_executors_count_their_policy_queries(name):
+    """queries (the compute per 100 steps that the benchmark reports) is every forward pass, pauses included."""
+    p = ScriptedPolicy(u_act=np.full(8, 0.9) if name == "aurd" else None)
+    ex = make_executor(name)
+    run(ex, p, 13)
+    assert ex.queries == p.queries > 0
+    if name == "ensemble":
+        assert ex.queries == 13
+    ex.reset()
+    assert ex.queries == 0

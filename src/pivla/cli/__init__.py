@@ -34,6 +34,10 @@ COMMANDS: dict[str, Command | Group] = {
     "info": Command("pivla.cli.train", "info", "a run's config, parameter counts, training status, calibration"),
     "ablate": Command("pivla.cli.experiments", "ablate", "the paper's ablation tables (4-7) on the twin"),
     "serve": Command("pivla.cli.serve", "serve", "serve a policy over a websocket (openpi's protocol)"),
+    "benchmark": Group("the paper's experiments, resumable", {
+        "twin": Command("pivla.cli.experiments", "benchmark_twin",
+                        "Tables 2-7 and Figs. 8, 16, 17 on the twin: train, decide on validation, test, report"),
+    }),
     "libero": Group("LIBERO on the official protocol", {
         "run": Command("pivla.cli.experiments", "libero_run",
                        "one suite end to end: collect, train, calibrate, evaluate on the official init states"),

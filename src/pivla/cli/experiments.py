@@ -1,4 +1,4 @@
-"""``pivla demo`` and ``pivla ablate``."""
+"""``pivla demo``, ``pivla ablate``, ``pivla benchmark twin`` and ``pivla libero run``."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from typing import Annotated
 
 import tyro
 
+from pivla.evaluation import benchmark
 from pivla.evaluation.ablate import AblationConfig
 from pivla.evaluation.demo import DemoConfig, quick
 from pivla.evaluation.libero import LiberoRunConfig
@@ -63,4 +64,31 @@ def libero_run(cfg: LiberoRunConfig) -> int:
     from pivla.evaluation.libero import run_libero
 
     print(f"report at {run_libero(cfg)}")
+    return 0
+
+
+@dataclass
+class BenchmarkCommand:
+    """The paper's experiments on the twin."""
+
+    sizes: Annotated[benchmark.BenchmarkConfig, tyro.conf.arg(name="")] = field(
+        default_factory=benchmark.BenchmarkConfig)
+    quick: bool = False
+    """A smoke run of a few minutes that still trains and evaluates for real, covering every table (its sizes
+    become the defaults)."""
+
+
+def benchmark_twin_default(argv: list[str]) -> tuple[BenchmarkCommand, list[str]]:
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--quick", action="store_true")
+    known, _ = pre.parse_known_args(argv)
+    sizes = benchmark.quick() if known.quick else benchmark.BenchmarkConfig()
+    return BenchmarkCommand(sizes=sizes, quick=known.quick), argv
+
+
+def benchmark_twin(cmd: BenchmarkCommand) -> int:
+    """Resumable (every evaluation continues from its last episode, every other stage is skipped when its output
+    exists), so it is safe to leave in the background for hours:
+    nohup pivla benchmark twin --out runs/benchmark > runs/benchmark.log 2>&1 &"""
+    print(f"benchmark finished: report at {benchmark.run_benchmark(cmd.sizes)}")
     return 0

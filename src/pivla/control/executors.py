@@ -160,10 +160,16 @@ class BaseExecutor:
         self.trace: list[dict] = []
         self.plans: list[tuple[int, str]] = []
         self.t, self.last_gripper = 0, -1.0
+        self.queries = 0  # policy forward passes, the compute a chunking strategy saves or spends
         self._pred_min: float | None = None
 
     def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
         raise NotImplementedError
+
+    def _infer(self, policy: ChunkPolicy, obs: dict) -> Any:
+        """One policy query, counted."""
+        self.queries += 1
+        return policy.infer(obs)
 
     def _emit(self, action: np.ndarray, **row: Any) -> np.ndarray:
         action = np.asarray(action, np.float32)
@@ -240,7 +246,7 @@ class FixedExecutor(BaseExecutor):
             if self._plan is not None:
                 ended = "complete"
                 self.plans.append((self._k, ended))
-            self._plan, self._k = Plan.from_output(policy.infer(obs)), 0
+            self._plan, self._k = Plan.from_output(self._infer(policy, obs)), 0
         k, p = self._k, self._plan
         self._k += 1
         signals = self._monitored(policy, obs, None if k == 0 else p.latents[k - 1], p.u_act[k])
@@ -263,7 +269,7 @@ class EnsembleExecutor(BaseExecutor):
         self._predicted: np.ndarray | None = None  # the previous query's latent for this step's observation
 
     def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
-        out = policy.infer(obs)
+        out = self._infer(policy, obs)
         plan = Plan.from_output(out)
         # every step queries, so the newest prediction of this observation is the previous query's first latent
         signals = self._monitored(policy, obs, self._predicted, plan.u_act[0])
@@ -308,7 +314,7 @@ class AdaHorizonExecutor(BaseExecutor):
         ended = None
         if replanned:
             ended = self._event
-            self._plan = Plan.from_output(policy.infer(obs))
+            self._plan = Plan.from_output(self._infer(policy, obs))
             self._h, self._event = adahorizon(self._plan.u_act, self.cfg.min_exec, *self._thresholds(policy))
             self._k = 0
             self.plans.append((self._h, self._event))
@@ -403,7 +409,7 @@ class AURDExecutor(BaseExecutor):
         replanned = False
         while True:
             if self._plan is None:
-                self._plan, self._k, replanned, z_obs = Plan.from_output(policy.infer(obs)), 0, True, None
+                self._plan, self._k, replanned, z_obs = Plan.from_output(self._infer(policy, obs)), 0, True, None
             k, p = self._k, self._plan
             u_pred = 0.0 if k == 0 or z_obs is None else self._u_pred(z_obs, p.latents[k - 1], baseline)
             u = combine_uncertainty(float(p.u_act[k]), u_pred, eta)

@@ -45,6 +45,7 @@ class EpisodeResult:
     step_times: list[float]
     seed: int | None = None
     stage_progress: float | None = None  # fraction of the task's stages reached (twin), None if unknown
+    queries: int = 0  # policy forward passes
     episode: Episode | None = field(default=None, repr=False)
 
     @property
@@ -57,7 +58,7 @@ class EpisodeResult:
         return {
             "success": self.success, "steps": self.steps, "executor": self.executor, "seed": self.seed,
             "stage_progress": self.stage_progress,
-            "plans": len(self.plans), "replans": ev["replan"], "prunes": ev["prune"], "pauses": ev["pause"],
+            "plans": len(self.plans), "queries": self.queries, "replans": ev["replan"], "prunes": ev["prune"], "pauses": ev["pause"],
             "mean_executed_horizon": float(np.mean(horizons)) if horizons else 0.0,
             # mean, not median: chunking executors query the policy on a few steps only
             "control_ms_mean": float(np.mean(self.step_times) * 1e3) if self.step_times else 0.0,
@@ -75,5 +76,5 @@ def run_episode(env: Any, policy: Any, executor: BaseExecutor, seed: int | None 
     return EpisodeResult(
         success=bool(ep.success), steps=len(ep), executor=executor.name, trace=list(executor.trace),
         plans=list(executor.plans), step_times=list(actor.step_times), seed=seed,
-        stage_progress=ep.meta.get("stage_progress"), episode=ep if keep_episode else None,
+        stage_progress=ep.meta.get("stage_progress"), queries=executor.queries, episode=ep if keep_episode else None,
     )

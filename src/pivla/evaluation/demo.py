@@ -1,9 +1,10 @@
 """The main job, end to end on the simulated twin: collect expert demos on pick_place -> train the validated
 recipe -> run it on validation seeds and calibrate AURD on its successful rollouts -> evaluate AURD, fixed,
-ensemble and AdaHorizon in distribution and under perturbations -> report.
+ensemble and AdaHorizon in distribution, under perturbations and with the object displaced mid-chunk -> report.
 
 Every stage writes into ``out`` and is skipped when its output already exists, so an interrupted demo
-continues where it stopped. Training, validation and test episodes use disjoint seeds.
+continues where it stopped. Seeds come from the families of :mod:`pivla.envs.seeds`: demonstrations from
+train, calibration from validation, every reported figure from test.
 """
 
 from __future__ import annotations
@@ -27,8 +28,14 @@ from pivla.training.config import TrainConfig, check_target_divides
 log = logging.getLogger("pivla.demo")
 
 EXECUTORS = ("aurd", "fixed", "ensemble", "adahorizon")
-PERTURB = {"in_distribution": None, "static_distractors": "static_distractors", "unseen_env": "unseen_env",
-           "dynamic_distractors": "dynamic_distractors", "camera_jitter": "camera_jitter"}
+# condition -> (its code in the seed families, perturbation spec)
+CONDITIONS = {"in_distribution": ("in_distribution", None),
+              "static_distractors": ("static_distractors", "static_distractors"),
+              "unseen_env": ("unseen_env", "unseen_env"),
+              "dynamic_distractors": ("dynamic_distractors", "dynamic_distractors"),
+              "camera_jitter": ("camera_jitter", "camera_jitter"),
+              # the object jumps 4 cm while the second chunk executes: what replanning exists for
+              "displace_object_4": ("displace_object", "displace_object=4")}
 
 
 @dataclass
@@ -39,7 +46,7 @@ class DemoConfig:
     out: str = "runs/demo"
     """Directory of the whole job (data, policy, evaluations, report.md)."""
     seed: int = 0
-    """Training seed; demonstrations use it, validation seed + 1, test episodes seed + 1000."""
+    """Training seed (initialisation, batches, augmentation); episodes come from the seed families."""
     realism: Literal["ideal", "servo"] = "ideal"
     """Twin actuation: ideal, or hobby-servo backlash, deadband and noise."""
     train_episodes: int = 90
@@ -63,8 +70,9 @@ class DemoConfig:
     train_perturb: str | None = "randomized_scene"
     """Training scenes restyled and cluttered with shapes the tests never use
     (docs/experiments.md#training-scene-randomisation)."""
-    conditions: tuple[str, ...] = ("in_distribution", "static_distractors", "unseen_env")
-    """Test conditions, every executor on each."""
+    conditions: tuple[str, ...] = ("in_distribution", "static_distractors", "unseen_env", "displace_object_4")
+    """Test conditions, every executor on each (in_distribution, static_distractors, unseen_env,
+    dynamic_distractors, camera_jitter, displace_object_4)."""
     levels: tuple[int, ...] = (2, 4, 6)
     """Distraction levels of the Fig. 8 sweep (level 0 is the in-distribution evaluation)."""
     level_executors: tuple[str, ...] = ("aurd", "fixed")
@@ -113,13 +121,16 @@ def run_demo(cfg: DemoConfig) -> Path:
         fn()
         timings[name] = round(time.time() - t, 1)
 
+    unknown = sorted(set(cfg.conditions) - set(CONDITIONS))
+    if unknown:
+        raise ValueError(f"unknown conditions {unknown}; known: {', '.join(CONDITIONS)}")
     demos = CollectConfig(out=str(train_dir), suite="pick_place", env="tabletop", episodes=cfg.train_episodes,
-                          seed=cfg.seed, perturb=cfg.train_perturb, workers=cfg.workers, realism=cfg.realism,
+                          seed_family="train", perturb=cfg.train_perturb, workers=cfg.workers, realism=cfg.realism,
                           image_size=cfg.image_size, noise=cfg.noise, miss=cfg.miss)
     if _stage("collect train demos", (train_dir / "rock_right_demo.hdf5").exists()):
         timed("collect_train", lambda: collect_demos(demos))
     if _stage("collect validation demos", (val_dir / "rock_right_demo.hdf5").exists()):
-        val = dataclasses.replace(demos, out=str(val_dir), episodes=cfg.val_episodes, seed=cfg.seed + 1,
+        val = dataclasses.replace(demos, out=str(val_dir), episodes=cfg.val_episodes, seed_family="validation",
                                   perturb=None, noise=0.0, miss=0.0)
         timed("collect_val", lambda: collect_demos(val))
     status = run_dir / "status.json"
@@ -128,21 +139,21 @@ def run_demo(cfg: DemoConfig) -> Path:
     rollouts_dir = out / "data" / "val_rollouts"
     if _stage("validation rollouts", (rollouts_dir / "rock_right_rollouts.hdf5").exists()):
         timed("validation_rollouts", lambda: _log_eval(validation_rollouts(
-            run_dir, rollouts_dir, out / "data" / "val_rollouts_eval", cfg.val_episodes, cfg.seed + 1, cfg.realism,
-            cfg.workers), "validation", "fixed"))
+            run_dir, rollouts_dir, out / "data" / "val_rollouts_eval", cfg.val_episodes, cfg.seed, cfg.realism,
+            cfg.workers, family=True), "validation", "fixed"))
     if _stage("calibrate", (run_dir / "calibration.json").exists()):
         timed("calibrate", lambda: calibrate_on_rollouts(run_dir, rollouts_dir, val_dir, cfg.calibration))
-    test_seed = cfg.seed + 1000
-    cells = [(c, e, PERTURB[c], cfg.test_episodes, 2) for c in cfg.conditions for e in EXECUTORS]
-    cells += [(f"distraction_level_{lv}", e, f"level={lv}" if lv else None, cfg.level_episodes, 0)
+    cells = [(c, e, *CONDITIONS[c], cfg.test_episodes, 2) for c in cfg.conditions for e in EXECUTORS]
+    cells += [(f"distraction_level_{lv}", e, "distraction_level", f"level={lv}" if lv else None, cfg.level_episodes, 0)
               for lv in cfg.levels for e in cfg.level_executors]
-    for condition, executor, perturb, episodes, videos in cells:
+    for condition, executor, code, perturb, episodes, videos in cells:
         target = out / "eval" / condition / executor
         if _stage(f"eval {condition} {executor}", (target / "results.json").exists()):
             ec = EvalConfig(policy=str(run_dir), out=str(target), executor=executor_config(executor),
-                            episodes=episodes, seed=test_seed, perturb=perturb, realism=cfg.realism,
-                            workers=cfg.workers, videos=videos)
-            timed(f"eval_{condition}_{executor}", lambda: _log_eval(evaluate(ec, progress=False), condition, executor))
+                            episodes=episodes, seed_family="test", condition=code, perturb=perturb,
+                            realism=cfg.realism, workers=cfg.workers, videos=videos)
+            timed(f"eval_{condition}_{executor}",
+                  lambda ec=ec, c=condition, e=executor: _log_eval(evaluate(ec, progress=False), c, e))
     report = write_report(out)
     timings["total_this_invocation"] = round(time.time() - t_all, 1)
     (out / "timings.json").write_text(json.dumps(timings, indent=2) + "\n")

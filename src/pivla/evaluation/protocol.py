@@ -35,30 +35,38 @@ def recipe(data: str, out: str, seed: int = 0, *, steps: int | None = None, batc
 
 def validation_rollouts(run: Path, record: Path, results: Path, episodes: int, seed: int, realism: str,
                         workers: int, env: str = "tabletop", suite: str = "pick_place", tasks: str | None = None,
-                        max_steps: int | None = None, libero_init: str = "official") -> dict:
-    """Run the policy with fixed horizon on validation seeds and record every rollout into ``record``
-    (LIBERO: ``libero_init="random"`` plays sampled scenes, not the official init states)."""
+                        max_steps: int | None = None, libero_init: str = "official",
+                        family: bool = False) -> dict:
+    """Run the policy with fixed horizon on validation seeds and record every rollout into ``record``: the
+    validation family's in-distribution episodes with ``family`` (twin), else the legacy ``seed`` (LIBERO:
+    ``libero_init="random"`` plays sampled scenes, not the official init states)."""
     ec = EvalConfig(policy=str(run), out=str(results), env=env, suite=suite, tasks=tasks, executor=FixedConfig(),
                     episodes=episodes, seed=seed, realism=realism, workers=workers, videos=0, max_steps=max_steps,
-                    record=str(record), split="validation", libero_init=libero_init)
+                    record=str(record), split="validation", libero_init=libero_init,
+                    seed_family="validation" if family else None, condition="in_distribution" if family else None)
     return evaluate(ec, progress=False)
 
 
-def calibrate_on_rollouts(run: Path, rollouts: Path, demos: Path, cfg: CalibrationConfig | None = None) -> str:
-    """Thresholds from the successful validation rollouts, or from the validation demonstrations when the
-    policy succeeded in none (a policy that never succeeds has no in-distribution signals of its own).
-    Writes them into the run; returns the source used."""
-    from pivla.control.calibrate import calibrate
+def calibration_episodes(rollouts: Path, demos: Path) -> tuple[list, Path]:
+    """The successful validation rollouts, or the validation demonstrations when the policy succeeded in none
+    (a policy that never succeeds has no in-distribution signals of its own); with the directory used."""
     from pivla.data.datasets import read_dataset
+
+    episodes = read_dataset(rollouts) if rollouts.exists() else []
+    if any(ep.success for ep in episodes):
+        return episodes, rollouts
+    log.warning("no successful validation rollout in %s: calibrating on the validation demonstrations", rollouts)
+    return read_dataset(demos), demos
+
+
+def calibrate_on_rollouts(run: Path, rollouts: Path, demos: Path, cfg: CalibrationConfig | None = None) -> str:
+    """Thresholds from ``calibration_episodes``, written into the run; returns the source used."""
+    from pivla.control.calibrate import calibrate
     from pivla.policy import load_policy
     from pivla.training.checkpoint import write_calibration
 
     policy = load_policy(run, device="cpu")
-    episodes = read_dataset(rollouts) if rollouts.exists() else []
-    source = rollouts
-    if not any(ep.success for ep in episodes):
-        log.warning("no successful validation rollout of %s: calibrating on the validation demonstrations", run)
-        episodes, source = read_dataset(demos), demos
+    episodes, source = calibration_episodes(rollouts, demos)
     calib, stats = calibrate(policy, episodes, cfg or CalibrationConfig(), source=str(source))
     write_calibration(run, vars(calib), stats)
     return str(source)

@@ -190,7 +190,7 @@ def write_report(root: str | Path) -> Path:
     for (c, e), r in sorted(results.items()):
         fp = r.get("failure_prediction", {})
         lines.append(f"| {c} | {e} | {fmt(fp.get('auroc_u_max'))} | {fmt(fp.get('auroc_u_mean'))} | {fmt(fp.get('auroc_neg_v_min'))} | "
-                     f"{fp.get('failures', '-')} | {fp.get('failures_flagged', '-')} | {fmt(fp.get('failure_lead_steps_mean'))} |")
+                     f"{fp.get('failures', '-')} | {fp.get('failure_flagged', '-')} | {fmt(fp.get('failure_lead_steps_mean'))} |")
     # figures
     main_cond = "in_distribution" if "in_distribution" in conditions else (conditions[0] if conditions else None)
     if main_cond:

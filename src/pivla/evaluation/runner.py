@@ -14,6 +14,7 @@ import multiprocessing as mp
 import os
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -21,7 +22,12 @@ from typing import Any, Literal
 import numpy as np
 
 from pivla.control.contract import DEFAULT_ETA
-from pivla.control.executors import AURDConfig, ExecutorConfig, config_to_dict, make_executor
+from pivla.control.executors import (
+    AURDConfig,
+    ExecutorConfig,
+    config_to_dict,
+    make_executor,
+)
 from pivla.envs import seeds
 from pivla.envs.rollout import episode_seed
 from pivla.evaluation.stats import wilson_interval
@@ -192,31 +198,42 @@ def episode_uncertainty(trace: list[dict]) -> np.ndarray:
     return np.array([row["u"] if "u" in row else row["u_act"] for row in trace], float)
 
 
-def failure_prediction(rows: list[dict], tau_high: float | None) -> dict:
-    """How well the model's own signals predict that an episode fails (the paper claims it, never measures it)."""
+def _leads(rows: list[dict], flagged: Callable[[dict], np.ndarray]) -> tuple[list[int], int]:
+    """Steps from the first flagged step to the end of each failed episode, and the successes ever flagged."""
+    leads, false_alarms = [], 0
+    for r in rows:
+        first = np.flatnonzero(flagged(r))
+        if r["success"]:
+            false_alarms += bool(len(first))
+        elif len(first):
+            leads.append(r["steps"] - int(first[0]))
+    return leads, false_alarms
+
+
+def failure_prediction(rows: list[dict], tau_high: float | None, v_thresh: float | None = None) -> dict:
+    """How well the model's own signals predict that an episode fails (the paper claims it, never measures it):
+    AUROC of U and of -min V for failure, and, given the thresholds, how many steps before a failure's end U
+    first exceeded tau_high (or V first fell below V_thresh), with the successes that raised the same flag."""
     if not rows:
         return {}
     failed = np.array([not r["success"] for r in rows])
     u_max = np.array([episode_uncertainty(r["trace"]).max(initial=0.0) for r in rows])
     u_mean = np.array([episode_uncertainty(r["trace"]).mean() if r["trace"] else 0.0 for r in rows])
     v_min = np.array([min((row["v"] for row in r["trace"]), default=0.0) for r in rows])
-    out = {"auroc_u_max": auroc(u_max, failed), "auroc_u_mean": auroc(u_mean, failed), "auroc_neg_v_min": auroc(-v_min, failed)}
-    if tau_high is not None:
-        leads = []
-        for r in rows:
-            if r["success"]:
-                continue
-            u = episode_uncertainty(r["trace"])
-            above = np.flatnonzero(u > tau_high)
-            if len(above):
-                leads.append(r["steps"] - int(above[0]))
-        out["failure_lead_steps_mean"] = float(np.mean(leads)) if leads else None
-        out["failures_flagged"] = len(leads)
-        out["failures"] = int(failed.sum())
+    out = {"auroc_u_max": auroc(u_max, failed), "auroc_u_mean": auroc(u_mean, failed), "auroc_neg_v_min": auroc(-v_min, failed),
+           "failures": int(failed.sum())}
+    signals = (("failure", tau_high, lambda r: episode_uncertainty(r["trace"]) > tau_high),
+               ("v_failure", v_thresh, lambda r: np.array([row["v"] for row in r["trace"]], float) < v_thresh))
+    for prefix, threshold, flagged in signals:
+        if threshold is not None:
+            leads, false_alarms = _leads(rows, flagged)
+            out[f"{prefix}_lead_steps_mean"] = float(np.mean(leads)) if leads else None
+            out[f"{prefix}_flagged"] = len(leads)
+            out[f"{prefix}_false_alarms"] = false_alarms
     return out
 
 
-def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict:
+def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None, v_thresh: float | None = None) -> dict:
     n = len(rows)
     succ = sum(r["success"] for r in rows)
     per_task: dict[str, dict] = {}
@@ -246,12 +263,17 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None) -> dict
         "pauses": sum(e == "pause" for _, e in plans),
         "plans": len(plans),
         "control_hz": 1e3 / control_ms if control_ms > 0 else 0.0,  # policy + decision time per control step
+        "control_ms_per_step": control_ms,
+        # episodes logged before queries were counted are left out
+        "queries_per_100_steps": (100 * sum(r["queries"] for r in rows if "queries" in r)
+                                  / max(sum(r["steps"] for r in rows if "queries" in r), 1)
+                                  if any("queries" in r for r in rows) else None),
         "steps": steps,
         "mean_steps": steps / n if n else 0.0,
         "sim_wall_s": float(sum(r["wall_s"] for r in rows)),
         # where the target encoder ran (AURD's U_pred); episodes logged before this field existed are left out
         "encoder_runtime": ",".join(sorted({r["encoder_runtime"] for r in rows if "encoder_runtime" in r})) or None,
-        "failure_prediction": failure_prediction(rows, tau_high),
+        "failure_prediction": failure_prediction(rows, tau_high, v_thresh),
         "failure_stages": failure_stages(rows),
         # episodes in which a mid-episode perturbation actually fired (a small displacement can come too late)
         "perturbed_episodes": sum(bool(r.get("perturb_events")) for r in rows),
@@ -401,7 +423,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
                     consume(row)
     bar.close()
     rows = sorted(done.values(), key=_key)
-    results = aggregate(rows, cfg, tau_high) | {"gripper_head": gripper_head, "thresholds": thresholds}
+    results = aggregate(rows, cfg, tau_high, thresholds["v_thresh"] if thresholds else None) | {"gripper_head": gripper_head, "thresholds": thresholds}
     atomic_write_json(out / "results.json", results)
     if cfg.record:  # after results.json: a missing recording must not cost the evaluation its results
         _merge_rollouts(Path(cfg.record), rows)

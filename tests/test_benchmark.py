@@ -1,0 +1,87 @@
+"""`pivla benchmark twin`: pooled paired statistics, the evaluation plan, and a miniature run end to end."""
+
+import dataclasses
+import json
+
+import pytest
+
+from pivla.envs import seeds
+from pivla.evaluation import benchmark
+from pivla.evaluation.benchmark import BenchmarkConfig, Results
+from pivla.io import atomic_write_json
+
+
+def _write_eval(root, seed, policy, cell, label, successes):
+    d = root / f"seed{seed}" / "test" / policy / cell / label
+    d.mkdir(parents=True)
+    rows = [{"task": "block_away", "task_index": 0, "episode": i, "success": bool(s),
+             "seed": seeds.seed_for("test", "in_distribution", "block_away", i)} for i, s in enumerate(successes)]
+    (d / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    atomic_write_json(d / "results.json", {"successes": sum(successes), "episodes": len(successes)})
+
+
+def test_comparisons_pair_episodes_within_each_seed_and_pool_the_seeds(tmp_path):
+    """Seed 0: A = 1100, B = 1001; seed 1: A = 111, B = 001. Pooled: 3 pairs only A solved, 1 only B, n 7,
+    difference 2/7, exact McNemar p = 2 * (C(4,0) + C(4,1)) / 2**4 = 0.625."""
+    _write_eval(tmp_path, 0, "main", "in_distribution", "aurd", [1, 1, 0, 0])
+    _write_eval(tmp_path, 0, "main", "in_distribution", "fixed", [1, 0, 0, 1])
+    _write_eval(tmp_path, 1, "main", "in_distribution", "aurd", [1, 1, 1])
+    _write_eval(tmp_path, 1, "main", "in_distribution", "fixed", [0, 0, 1])
+    res = Results(tmp_path)
+    c = res.compare(("main", "in_distribution", "aurd"), ("main", "in_distribution", "fixed"))
+    assert (c["n"], c["b"], c["c"]) == (7, 3, 1)
+    assert c["diff"] == pytest.approx(2 / 7) and c["p_mcnemar"] == pytest.approx(0.625)
+    rate = res.rate("main", "in_distribution", "aurd")
+    assert (rate["successes"], rate["episodes"]) == (5, 7)
+    assert res.compare(("main", "in_distribution", "aurd"), ("main", "unseen_env", "fixed")) is None  # not run
+
+
+def test_every_decision_is_taken_on_validation_seeds_and_the_plan_tests_each_table():
+    cfg = BenchmarkConfig()
+    b = benchmark.Benchmark(cfg)
+    b.decisions = {"hardest": {"cell": "push_arm_6"}, "failure_round": {"headline": "round2"}}
+    plan = b.test_plan("push_arm_6")
+    keys = {(p, c.name, label) for p, c, label, _ in plan}
+    assert len(keys) == len(plan)  # no evaluation twice
+    for cell in benchmark.headline_cells(cfg):
+        assert all(("round2", cell, e) in keys for e in benchmark.EXECUTORS)
+    assert ("round2", "in_distribution_ideal", "aurd") in keys and ("main", "push_arm_6", "aurd") in keys
+    assert all(("seen", "unseen_tasks", e) in keys for e in benchmark.EXECUTORS)
+    assert all((f"abl_{v}", "push_arm_6", "fixed") in keys for v in ("discrete_only", "no_rl", "continuous_il_only"))
+    unseen = next(c for p, c, _, _ in plan if c.name == "unseen_tasks")
+    assert unseen.suite == "pick_place_unseen" and unseen.condition == "unseen_tasks"
+    # the failure round's rollouts are train-family episodes, never validation or test ones
+    assert {seeds.family_of(seeds.seed_for("train", c.condition, "block_away", 0)) for c in benchmark.ROLLOUT_CELLS} == {"train"}
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_quick_benchmark_writes_a_complete_benchmark_json(tmp_path):
+    """The smoke sizes, smaller still: every stage runs for real (collection, 13 trainings, calibration,
+    decisions, tests) and every table of benchmark.json is filled; `pivla report --dir` rewrites the same."""
+    from pivla.cli import main
+
+    cfg = dataclasses.replace(benchmark.quick(), out=str(tmp_path / "b"), train_episodes=2, steps=3, batch_size=4,
+                              max_steps=4, tasks="ball_left", workers=1)
+    report = benchmark.run_benchmark(cfg)
+    data = json.loads((tmp_path / "b" / "benchmark.json").read_text())
+    tables = ("headline", "table2", "table3", "suites", "displace_object", "push_arm", "realism", "table4", "table5",
+              "table6", "table7", "failure_round", "sensitivity", "demo_counts", "compute")
+    assert set(tables) <= set(data["tables"]) and all(data["tables"][t] for t in tables)
+    assert data["hardest_condition"] in benchmark.candidate_cells(cfg)
+    assert data["headline_policy"] in ("main", "round2")
+    for rec in data["tables"]["headline"]:
+        assert all(rec["success"][e] is not None for e in benchmark.EXECUTORS)
+        assert all(rec["aurd_minus"][b] is not None for b in benchmark.BASELINES)
+    assert all(r["queries_per_100_steps"] > 0 for r in data["tables"]["compute"])
+    assert [r["task"] for r in data["tables"]["table2"]] == ["ball_left"]
+    assert all((tmp_path / "b" / f).exists() for f in data["figures"]) and len(data["figures"]) == 4
+    # the failure round trained on the main policy's recorded rollouts
+    rollouts = list((tmp_path / "b" / "seed0" / "train_rollouts").rglob("*_rollouts.hdf5"))
+    assert rollouts
+    config = json.loads((tmp_path / "b" / "seed0" / "policies" / "round2" / "config.json").read_text())
+    assert len(config["extra_data"]) == len(benchmark.ROLLOUT_CELLS)
+    before = data["tables"]
+    assert main(["report", "--dir", str(tmp_path / "b")]) == 0
+    assert json.loads((tmp_path / "b" / "benchmark.json").read_text())["tables"] == before
+    assert "Table 7" in report.read_text()
