@@ -54,11 +54,11 @@ def test_every_decision_is_taken_on_validation_seeds_and_the_plan_tests_each_tab
     assert {seeds.family_of(seeds.seed_for("train", c.condition, "block_away", 0)) for c in benchmark.ROLLOUT_CELLS} == {"train"}
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(1800)
+@pytest.mark.timeout(1200)
 def test_quick_benchmark_writes_a_complete_benchmark_json(tmp_path):
-    """The smoke sizes, smaller still: every stage runs for real (collection, 13 trainings, calibration,
-    decisions, tests) and every table of benchmark.json is filled; `pivla report --dir` rewrites the same."""
+    """The smoke sizes, smaller still (about 2 min on 2 cores): every stage runs for real (collection, 13
+    trainings, calibration, decisions, tests) and every table of benchmark.json is filled; `pivla report
+    --dir` rewrites the same."""
     from pivla.cli import main
 
     cfg = dataclasses.replace(benchmark.quick(), out=str(tmp_path / "b"), train_episodes=2, steps=3, batch_size=4,
