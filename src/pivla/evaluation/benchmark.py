@@ -456,6 +456,11 @@ class Results:
                     "ci95": list(wilson_interval(int(sum(v)), len(v)))} for t, v in per.items()}
 
 
+def _fired(row: dict) -> bool:
+    """Whether an episode's displacement or push moved something (level 0 records its step, moving nothing)."""
+    return any(np.linalg.norm(ev.get("shift", ev.get("tool_shift", [0.0]))) > 0 for ev in row.get("perturb_events", []))
+
+
 def _pct(r: dict | None) -> str:
     if r is None:
         return "not run"
@@ -533,7 +538,12 @@ def write_benchmark_report(out: str | Path) -> Path:
     for event in ("displace_object", "push_arm"):
         names = [f"{event}_{lv}" for lv in cfg.levels]
         rows, recs = executor_rows(event, headline, names)
-        table(event, f"Fig. 8: {event.replace('_', ' ')} mid-chunk, by level (cm)", header, rows, recs)
+        for row, rec in zip(rows, recs):  # an event waits while it cannot land, and may come too late to fire
+            fired = [sum(_fired(r) for _, rows in res.rows(headline, rec["cell"], e) for r in rows) for e in EXECUTORS]
+            rec["fired"] = dict(zip(EXECUTORS, fired))
+            row.append(" / ".join(map(str, fired)))
+        table(event, f"Fig. 8: {event.replace('_', ' ')} mid-chunk, by level (cm)",
+              [*header, "fired (" + " / ".join(EXECUTORS) + ")"], rows, recs)
         levels[event] = {e: [res.rate(headline, n, e) for n in names] for e in EXECUTORS}
     secondary = "ideal" if cfg.realism == "servo" else "servo"
     realism_rows, realism_recs = [], []
