@@ -17,11 +17,11 @@ from pivla.policy import Policy
 pytestmark = pytest.mark.skipif(not er.onnx_available(), reason="onnxruntime / onnxscript not installed")
 
 
-def make_policy(run_dir, runtime="onnx", seed=0, target="ema", downsample=1, cameras=1, stages=0):
+def make_policy(run_dir, runtime="onnx", seed=0, target="ema", downsample=1, cameras=1, stages=0, pool_grid=1):
     torch.manual_seed(seed)
     cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32)),
                       target_encoder=TargetEncoderConfig(name=target, grid=4, downsample=downsample, cameras=cameras,
-                                                         stages=stages))
+                                                         stages=stages, pool_grid=pool_grid))
     text = WordTokenizer.build(["pick up the block"], cfg.max_text_len)
     stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7), StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim))
     return Policy(CMSModel(cfg, len(text.vocab)), stats, text, run_dir=run_dir, encoder_runtime=runtime)
@@ -140,3 +140,13 @@ def test_downsampled_two_camera_target_matches_torch_and_refuses_a_wrong_shape(t
     # a picture of another size is resized to the model's first, as in the batch path
     big = {**obs(2), "agentview_rgb": np.repeat(np.repeat(obs(2)["agentview_rgb"], 2, 0), 2, 1)}
     np.testing.assert_allclose(p.encode(big), p_torch.encode(big), atol=1e-5, rtol=1e-4)
+
+
+def test_a_grid_pooled_target_matches_torch(tmp_path):
+    """pool_grid 2: the last feature map averaged per quadrant (4 x 32 numbers), in the ONNX graph as in
+    PyTorch."""
+    p = make_policy(tmp_path, pool_grid=2)
+    p_torch = make_policy(None, "torch", pool_grid=2)
+    assert p.encoder_runtime == "onnx" and p.encode(obs(0)).shape == (128,)
+    for s in range(3):
+        np.testing.assert_allclose(p.encode(obs(s)), p_torch.encode(obs(s)), atol=1e-5, rtol=1e-4)

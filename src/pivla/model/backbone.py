@@ -83,9 +83,13 @@ class ConvEncoder(nn.Module):
                 outs.append(x.unflatten(0, (b, n)))
         return outs
 
-    def pooled(self, images: torch.Tensor, centred: bool = False) -> torch.Tensor:
-        """Global-average-pooled features of every camera, concatenated: (B, n_cam * C)."""
-        return self.stages(images, centred)[-1].mean(dim=(-1, -2)).flatten(1)
+    def pooled(self, images: torch.Tensor, centred: bool = False, grid: int = 1) -> torch.Tensor:
+        """The last stage's features of every camera averaged over the picture (``grid`` 1) or over each cell of
+        a grid x grid partition, which keeps where things are, concatenated: (B, n_cam * C * grid**2)."""
+        feats = self.stages(images, centred)[-1]
+        if grid == 1:
+            return feats.mean(dim=(-1, -2)).flatten(1)
+        return nn.functional.adaptive_avg_pool2d(feats.flatten(0, 1), grid).reshape(feats.shape[0], -1)
 
 
 class _ResBlock(nn.Module):

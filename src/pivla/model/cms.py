@@ -115,19 +115,21 @@ class TargetEncoder(nn.Module):
     divided by sqrt(d_z), so that an L2 distance between two latents is an RMS error per feature.
     """
 
-    def __init__(self, encoder: nn.Module, kind: str, ema_decay: float, cameras: int = 1, downsample: int = 1):
+    def __init__(self, encoder: nn.Module, kind: str, ema_decay: float, cameras: int = 1, downsample: int = 1,
+                 grid: int = 1):
         super().__init__()
-        if downsample < 1:
-            raise ValueError(f"target encoder downsample must be >= 1, got {downsample}")
+        if downsample < 1 or grid < 1:
+            raise ValueError(f"target encoder downsample and grid must be >= 1, got {downsample} and {grid}")
         self.encoder = encoder
         self.kind = kind
         self.ema_decay = ema_decay
         self.cameras = cameras
         self.downsample = downsample
+        self.grid = grid
         self.encoder.requires_grad_(False)
 
     def extra_repr(self) -> str:
-        return f"kind={self.kind!r}, cameras={self.cameras}, downsample={self.downsample}"
+        return f"kind={self.kind!r}, cameras={self.cameras}, downsample={self.downsample}, grid={self.grid}"
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor) -> torch.Tensor:
@@ -137,7 +139,8 @@ class TargetEncoder(nn.Module):
         if self.downsample > 1:
             images = F.avg_pool2d(images.flatten(0, -4), self.downsample).unflatten(0, images.shape[:-3])
         lead = images.shape[:-4]
-        z = self.encoder.pooled(images.flatten(0, len(lead) - 1) if len(lead) > 1 else images)
+        flat = images.flatten(0, len(lead) - 1) if len(lead) > 1 else images
+        z = self.encoder.pooled(flat, grid=self.grid) if self.grid > 1 else self.encoder.pooled(flat)
         z = F.layer_norm(z.float(), z.shape[-1:]) / math.sqrt(z.shape[-1])
         return z.unflatten(0, lead) if len(lead) > 1 else z
 
@@ -170,7 +173,7 @@ class Thumbnail(nn.Module):
 
 def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder:
     tc = cfg.target_encoder
-    for key, default in (("downsample", 1), ("stages", 0)):
+    for key, default in (("downsample", 1), ("stages", 0), ("pool_grid", 1)):
         if getattr(tc, key) != default and tc.name not in ("ema", "frozen"):
             raise ValueError(f"target encoder {key} {getattr(tc, key)}: only the 'ema' and 'frozen' encoders "
                              f"take it, not {tc.name!r} (set it to {default})")
@@ -182,7 +185,7 @@ def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder
         encoder = copy.deepcopy(backbone.vision)
         if tc.stages:
             encoder.truncate(tc.stages)
-        return TargetEncoder(encoder, tc.name, tc.ema_decay, tc.cameras, tc.downsample)
+        return TargetEncoder(encoder, tc.name, tc.ema_decay, tc.cameras, tc.downsample, tc.pool_grid)
     if tc.name == "dinov2":
         return TargetEncoder(Dinov2Encoder(tc.path, cfg.image_size), "frozen", tc.ema_decay, tc.cameras)
     if tc.name == "thumbnail":

@@ -81,12 +81,12 @@ class TargetLatents(torch.nn.Module):
     def __init__(self, target: torch.nn.Module):
         super().__init__()
         self.target = target
-        d_z = target.encoder.out_channels * target.cameras
+        d_z = target.encoder.out_channels * target.cameras * target.grid**2
         self.register_buffer("scale", torch.full((d_z,), 1.0 / math.sqrt(d_z)), persistent=False)
 
     def forward(self, centred: torch.Tensor) -> torch.Tensor:
         """(1, cameras, 3, h, w) centred images -> (1, d_z) latents."""
-        z = self.target.encoder.pooled(centred, centred=True).float()
+        z = self.target.encoder.pooled(centred, centred=True, grid=self.target.grid).float()
         return F.layer_norm(z, z.shape[-1:], weight=self.scale)
 
 
