@@ -201,6 +201,8 @@ def _collect_libero_task(job: tuple[CollectConfig, int]) -> tuple[int, list, int
     from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
 
     cfg, task = job
+    if not logging.getLogger().handlers:  # a spawned worker: its per-episode progress goes to the caller's log too
+        logging.basicConfig(level=logging.INFO, format="%(message)s")
     env = make_env("libero", cfg.suite, task, image_size=cfg.size, render=True, init_state=0, init=cfg.libero_init)
     actor = RolloutExpert(cfg.suite, task, ExpertConfig(noise=cfg.noise, miss=cfg.miss))
     wanted = cfg.episodes
