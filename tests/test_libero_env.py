@@ -147,7 +147,7 @@ def test_render_false_has_no_images():
 
 @requires_libero
 def test_tiny_policy_evaluates_on_libero_from_given_init_states(synthetic_data, tmp_path):
-    """The CI smoke test of the issue: one task, short episodes, a tiny policy, the same runner and
+    """A smoke test in the default set: one task, short episodes, a tiny policy, the same runner and
     results.json as the twin; episode e starts from official init state first_init_state + e."""
     import json
 

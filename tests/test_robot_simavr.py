@@ -70,20 +70,26 @@ def test_limits_are_enforced_by_the_firmware(sim):
     board.close()
 
 
+def settled_pulses(sim, interval: float, timeout: float) -> tuple[list, list]:
+    """The last two pulse readings, ``interval`` s apart, once the first channel's agree (or at ``timeout``):
+    the simulation runs 1-1.7x slower than real time, more on a loaded machine, so no fixed sleep says when
+    the firmware has stopped the motion; the caller asserts on them."""
+    deadline = time.monotonic() + timeout
+    before = sim.wait_for(lambda w: True, 1)
+    while True:
+        time.sleep(interval)
+        after = sim.wait_for(lambda w: True, 1)
+        if abs(after[0] - before[0]) < TOL_US or time.monotonic() > deadline:
+            return before, after
+        before = after
+
+
 def test_watchdog_holds_position(sim):
     board = Board.open(sim.port)
     board.set_targets([1000, 1500, 1500, 1500, 1500, 1500, 2000], 200)  # 2.5 s of travel
     time.sleep(1.0)  # silent host: the firmware holds after 500 ms of its own (simulated) time
-    # the simulation runs 1-1.7x slower than real time, more on a loaded machine: wait, without a command,
-    # until two readings 0.4 s apart agree; a board without a watchdog would only stop at 1000 us
-    deadline = time.monotonic() + 3.0
-    first = sim.wait_for(lambda w: True, 1)
-    while True:
-        time.sleep(0.4)
-        later = sim.wait_for(lambda w: True, 1)
-        if abs(first[0] - later[0]) < TOL_US or time.monotonic() > deadline:
-            break
-        first = later
+    # a board without a watchdog would only stop at 1000 us
+    first, later = settled_pulses(sim, interval=0.4, timeout=3.0)
     assert abs(first[0] - later[0]) < TOL_US and later[0] > 1200  # held mid-travel
     st = board.state()
     assert st.watchdog and not st.moving
@@ -144,15 +150,8 @@ def test_disconnect_and_reconnect(sim):
     board = Board.open(sim.port)
     board.set_targets([1100] * 7, 300)
     board.close()  # host vanishes mid-motion
-    # wait until the pulse settles (simavr can run slower than real time on a busy machine, so no fixed
-    # sleep): it must settle short of the 1100 us target, i.e. the watchdog stopped the motion
-    held, deadline = sim.wait_for(lambda w: True, 1), time.monotonic() + 10
-    while True:
-        time.sleep(0.3)
-        now = sim.wait_for(lambda w: True, 1)
-        if abs(now[0] - held[0]) < TOL_US or time.monotonic() > deadline:
-            break
-        held = now
+    # the pulse must settle short of the 1100 us target, i.e. the watchdog stopped the motion
+    held, now = settled_pulses(sim, interval=0.3, timeout=10.0)
     assert abs(now[0] - held[0]) < TOL_US and held[0] > 1150, (held, now)
     board = Board.open(sim.port)
     assert board.state().watchdog

@@ -138,8 +138,12 @@ def _diff(r: dict, ref: dict | None) -> str:
     95% interval and the exact McNemar p."""
     if ref is None or r is ref:
         return ""
-    cmp = compare(*paired_successes(load_rows(Path(r["dir"]) / "episodes.jsonl"),
-                                    load_rows(Path(ref["dir"]) / "episodes.jsonl")))
+    return format_difference(compare(*paired_successes(load_rows(Path(r["dir"]) / "episodes.jsonl"),
+                                                       load_rows(Path(ref["dir"]) / "episodes.jsonl"))))
+
+
+def format_difference(cmp: dict) -> str:
+    """A paired comparison (``stats.compare``) as points with its 95% interval and McNemar p."""
     lo, hi = cmp["ci95"]
     return f"{100 * cmp['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] (p {cmp['p_mcnemar']:.2g})"
 

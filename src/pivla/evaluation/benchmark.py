@@ -40,7 +40,7 @@ from pivla.control.executors import ExecutorConfig, config_to_dict, executor_con
 from pivla.envs import select_tasks
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.envs.tabletop.perturb import EVENT_LEVELS_CM
-from pivla.evaluation.ablate import INCREMENTAL, TRAIN_VARIANTS
+from pivla.evaluation.ablate import INCREMENTAL, TRAIN_VARIANTS, format_difference
 from pivla.evaluation.protocol import (
     calibrate_on_rollouts,
     calibration_episodes,
@@ -65,7 +65,6 @@ SENSITIVITY: dict[str, tuple[float, ...]] = {
     "eta": (0.3, 0.5, 0.7, 0.9), "tau_high_pct": (95.0, 97.5, 99.0, 99.7), "v_pct": (0.0, 10.0, 25.0, 50.0),
 }
 OTHER_SUITES = ("long", "drawer", "stack")
-SPLIT_FAMILY = {"train": "train", "validation": "validation", "test": "test"}
 
 
 @dataclass(frozen=True)
@@ -290,11 +289,10 @@ class Benchmark:
         return self.out / f"seed{seed}" / "train_rollouts" / cell
 
     def evaluate(self, seed: int, split: Literal["train", "validation", "test"], policy: str, cell: Cell, label: str,
-                 executor: ExecutorConfig, episodes: int | None = None, record: Path | None = None) -> dict:
+                 executor: ExecutorConfig, record: Path | None = None) -> dict:
         """One evaluation (resumed if interrupted, reused if finished) in ``seed*/split/policy/cell/label``."""
         cfg = self.cfg
-        episodes = episodes or {"test": cfg.test_episodes, "validation": cfg.val_episodes,
-                                "train": cfg.rollout_episodes}[split]
+        episodes = {"test": cfg.test_episodes, "validation": cfg.val_episodes, "train": cfg.rollout_episodes}[split]
         target = self.eval_dir(seed, split, policy, cell.name, label)
         tasks = cfg.tasks if cell.suite == "pick_place" else None
         if (target / "results.json").exists():
@@ -303,7 +301,7 @@ class Benchmark:
                 return done
         ec = EvalConfig(policy=str(self.run_dir(policy, seed)), out=str(target), suite=cell.suite, tasks=tasks,
                         executor=executor,
-                        episodes=episodes, seed_family=SPLIT_FAMILY[split], condition=cell.condition,
+                        episodes=episodes, seed_family=split, condition=cell.condition,
                         perturb=cell.perturb, realism=cell.realism or cfg.realism, workers=cfg.workers, videos=0,
                         max_steps=cfg.max_steps, record=str(record) if record else None, split=split)
         res = evaluate(ec, progress=False)
@@ -469,25 +467,21 @@ def _pct(r: dict | None) -> str:
 
 
 def _diff(c: dict | None) -> str:
-    if c is None:
-        return "-"
-    lo, hi = c["ci95"]
-    return f"{100 * c['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] (p {c['p_mcnemar']:.2g})"
+    return "-" if c is None else format_difference(c)
 
 
 def write_benchmark_report(out: str | Path) -> Path:
     """benchmark.md, benchmark.json and figures/*.png from the finished evaluations (``pivla report --dir`` on a
     benchmark directory calls this too, so both print the same figures)."""
     out = Path(out)
-    cfg = BenchmarkConfig(**{k: tuple(v) if isinstance(v, list) else v
-                             for k, v in json.loads((out / "benchmark_config.json").read_text()).items()
-                             if k != "calibration"})
+    stored = json.loads((out / "benchmark_config.json").read_text())
+    cfg = BenchmarkConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in stored.items() if k != "calibration"})
     decisions = json.loads((out / "decisions.json").read_text()) if (out / "decisions.json").exists() else {}
     res = Results(out)
     hardest = decisions.get("hardest", {}).get("cell")
     headline = decisions.get("failure_round", {}).get("headline", "main")
     cells = headline_cells(cfg)
-    data: dict[str, Any] = {"config": json.loads((out / "benchmark_config.json").read_text()), "decisions": decisions,
+    data: dict[str, Any] = {"config": stored, "decisions": decisions,
                             "seeds": res.seeds, "headline_policy": headline, "hardest_condition": hardest,
                             "tables": {}, "comparisons": []}
     data["timings_s"] = json.loads((out / "timings.json").read_text()) if (out / "timings.json").exists() else {}
@@ -580,7 +574,7 @@ def write_benchmark_report(out: str | Path) -> Path:
                             "validation family; every figure above: the test family (pivla.envs.seeds)."), ""]
     if data["timings_s"]:
         md += ["## Wall time (s)", "", ", ".join(f"{k} {v:.0f}" for k, v in data["timings_s"].items()), ""]
-    figures = _figures(out, levels, sens, counts)
+    figures = _figures(out, cfg.levels, levels, sens, counts)
     data["figures"] = figures
     md += [f"![{Path(f).stem}]({f})" for f in figures]
     atomic_write_json(out / "benchmark.json", data)
@@ -675,7 +669,7 @@ def _demo_counts(res: Results, cfg: BenchmarkConfig, hardest: str, table: Callab
     return out
 
 
-def _figures(out: Path, levels: dict, sens: dict, counts: dict) -> list[str]:
+def _figures(out: Path, cm: Iterable[int], levels: dict, sens: dict, counts: dict) -> list[str]:
     """PNG figures (relative paths); curves without results are left out."""
     from pivla.evaluation.report import _plt, _save
 
@@ -689,11 +683,10 @@ def _figures(out: Path, levels: dict, sens: dict, counts: dict) -> list[str]:
                                       for _, r in pts], 0, None).T,  # Wilson bounds can round past the rate
                         marker="o", capsize=3, label=label)
 
-    cfg_levels = json.loads((out / "benchmark_config.json").read_text())["levels"]
     for name, per_exec in levels.items():
         fig, ax = plt.subplots(figsize=(5, 3.5))
         for e, rates in per_exec.items():
-            curve(ax, cfg_levels, rates, e)
+            curve(ax, list(cm), rates, e)
         ax.set(xlabel=f"{name.replace('_', ' ')} (cm)", ylabel="success (%)", ylim=(0, 102))
         ax.legend()
         written.append(f"figures/{name}.png")
