@@ -1,5 +1,6 @@
 """Collection end to end: CLI -> LIBERO-layout HDF5 -> training data pipeline; worker-count independence."""
 
+import dataclasses
 import functools
 
 import av
@@ -75,3 +76,45 @@ def test_episodes_do_not_depend_on_worker_count():
     two = collect_episodes(factory, make_expert(0.1), 3, seed=9, workers=2)
     for a, b in zip(one, two):
         assert np.array_equal(a.actions, b.actions) and np.array_equal(a.obs["agentview_rgb"], b.obs["agentview_rgb"])
+
+
+def test_a_smaller_collection_is_the_first_episodes_of_a_larger_one(tmp_path):
+    """Why the benchmark's Fig. 17 sets are slices of the full set: a task's file holds its first successful
+    seeds in order (the expert misses its first grasp half the time, so failures are replaced too)."""
+    from pivla.data.format import read_episodes
+    from pivla.envs.collect import CollectConfig, collect_demos
+
+    base = CollectConfig(out="", suite="pick_place", tasks="ball_left", seed_family="train", image_size=32, miss=0.5,
+                         noise=0.3)
+    for n in (2, 4):
+        assert collect_demos(dataclasses.replace(base, out=str(tmp_path / str(n)), episodes=n)) == 0
+    small, large = (read_episodes(tmp_path / str(n) / "ball_left_demo.hdf5") for n in (2, 4))
+    assert len(large) == 4
+    for a, b in zip(small, large[:2]):
+        assert np.array_equal(a.actions, b.actions) and np.array_equal(a.obs["agentview_rgb"], b.obs["agentview_rgb"])
+
+
+def test_an_interrupted_collection_keeps_every_finished_task(tmp_path, monkeypatch):
+    """Each task's file is written once it is complete; the benchmark's rerun collects only the missing tasks."""
+    from pivla.envs import collect
+    from pivla.evaluation.benchmark import Benchmark
+
+    real, calls = collect.iter_jobs, []
+
+    def interrupted(jobs, *args, **kwargs):
+        calls.append(len(jobs))
+        for i, ep in enumerate(real(jobs, *args, **kwargs)):
+            if i == 1 and len(calls) == 1:
+                raise KeyboardInterrupt
+            yield ep
+
+    monkeypatch.setattr(collect, "iter_jobs", interrupted)
+    cfg = collect.CollectConfig(out=str(tmp_path), suite="drawer", episodes=1, image_size=32, keep_failures=True)
+    with pytest.raises(KeyboardInterrupt):
+        collect.collect_demos(cfg)
+    assert sorted(p.name for p in tmp_path.glob("*.hdf5")) == ["open_drawer_demo.hdf5"]
+    written = (tmp_path / "open_drawer_demo.hdf5").stat().st_mtime_ns
+    Benchmark._collect(cfg)
+    assert calls[1:] == [1]  # the second run collected the one missing task
+    assert sorted(p.name for p in tmp_path.glob("*.hdf5")) == ["close_drawer_demo.hdf5", "open_drawer_demo.hdf5"]
+    assert (tmp_path / "open_drawer_demo.hdf5").stat().st_mtime_ns == written

@@ -172,6 +172,15 @@ def read_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> 
     return episodes
 
 
+def read_env_meta(path: str | Path) -> dict:
+    """A file's ``data.env_args`` (how it was recorded: env, control rate, seeds...), ``{}`` when absent."""
+    try:
+        with h5py.File(path, "r") as f:
+            return json.loads(f["data"].attrs.get("env_args", "{}")) if "data" in f else {}
+    except (OSError, json.JSONDecodeError, TypeError) as e:
+        raise DatasetError(f"{path}: unreadable HDF5 file or env_args ({e})") from e
+
+
 def dataset_files(root: str | Path) -> list[Path]:
     """The ``.hdf5`` files of a dataset directory (or the file itself), sorted for reproducibility. Hidden
     files and folders (e.g. an evaluation's per-episode recordings, merged beside them) are not part of it."""

@@ -32,13 +32,20 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import av
-import h5py
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import tyro
 
-from pivla.data.format import ACTION_DIM, DatasetError, Episode, dataset_files, read_episodes, write_episodes
+from pivla.data.format import (
+    ACTION_DIM,
+    DatasetError,
+    Episode,
+    dataset_files,
+    read_env_meta,
+    read_episodes,
+    write_episodes,
+)
 from pivla.io import atomic_dir
 
 CODEBASE_VERSION = "v3.0"
@@ -841,11 +848,7 @@ def _hdf5_fps(files: list[Path]) -> int | None:
     ``env_kwargs.control_freq``), if any."""
     rates = set()
     for path in files:
-        try:
-            with h5py.File(path, "r") as f:
-                env = json.loads(f["data"].attrs.get("env_args", "{}")) if "data" in f else {}
-        except (OSError, json.JSONDecodeError, TypeError) as e:
-            raise DatasetError(f"{path}: unreadable HDF5 file or env_args ({e})") from e
+        env = read_env_meta(path)
         rate = env.get("control_hz") or (env.get("env_kwargs") or {}).get("control_freq")
         if rate:
             rates.add(int(round(float(rate))))

@@ -1,12 +1,15 @@
 """Scripted-expert demonstrations into a LIBERO-layout dataset (one HDF5 file per task), on the simulated twin
 or on LIBERO itself. ``pivla collect`` and ``pivla demo`` call :func:`collect_demos`.
 
-Failed expert episodes are replaced by the next seeds of the same task, in rounds over all tasks, so the
-dataset depends on the seed only, never on the number of worker processes.
+Failed expert episodes are replaced by the next seeds of the same task, so a task's file holds its first N
+successful seeds in seed order: it depends on the seed only, never on the number of worker processes, and the
+first n episodes of an N-episode file are the n-episode collection. Each task's file is written as soon as
+that task is complete.
 """
 
 from __future__ import annotations
 
+import collections
 import functools
 import logging
 import multiprocessing as mp
@@ -16,7 +19,7 @@ from typing import Literal
 
 from pivla.data.format import write_episodes
 from pivla.envs import TaskSpec, seeds, select_tasks
-from pivla.envs.rollout import episode_seed, run_episode, run_jobs
+from pivla.envs.rollout import episode_seed, iter_jobs, run_episode
 
 log = logging.getLogger(__name__)
 
@@ -97,48 +100,50 @@ def collect_demos(cfg: CollectConfig) -> int:
         return episode_seed(task_seeds[name], k)
 
     kept: dict[str, list] = {spec.name: [] for spec in specs}
-    attempts = dict.fromkeys(task_seeds, 0)
+    attempts = dict.fromkeys(kept, 0)
     budget = 3 * cfg.episodes + 10
-    while True:
-        jobs, owners = [], []
-        for name in kept:
-            need = cfg.episodes - len(kept[name])
-            if need <= 0 or attempts[name] >= budget:
-                continue
-            for i in range(need):
-                jobs.append((factories[name], attempt_seed(name, attempts[name] + i)))
-                owners.append(name)
-            attempts[name] += need
-        if not jobs:
-            break
-        for name, ep in zip(owners, run_jobs(jobs, expert, workers=cfg.workers, desc="collect")):
-            if ep.success or cfg.keep_failures:
-                kept[name].append(ep)
     status = 0
-    for spec in specs:
-        episodes = kept[spec.name]
-        n_success = sum(e.success for e in episodes)
-        rate = (n_success if cfg.keep_failures else len(episodes)) / attempts[spec.name]
+
+    def finish(spec: TaskSpec) -> int:
+        """Write one complete (or exhausted) task, as soon as its last episode of the round is in."""
+        episodes, n = kept[spec.name], attempts[spec.name]
         if not episodes:
-            log.error("%s: the expert failed all %d attempts; nothing written", spec.name, attempts[spec.name])
-            status = 1
-            continue
+            log.error("%s: the expert failed all %d attempts; nothing written", spec.name, n)
+            return 1
         env_meta = {
             "env": cfg.env, "suite": cfg.suite, "task": spec.name, "task_index": spec.index,
             "instruction": spec.instruction, "max_steps": spec.max_steps, "realism": cfg.realism,
             "perturb": perturb.spec(), "image_size": cfg.size, "control_hz": CONTROL_HZ,
             "action": {"translation_m_per_unit": TRANS_SCALE, "rotation_rad_per_unit": ROT_SCALE,
                        "gripper": "-1 open, +1 closed"},
-            "seed": cfg.seed, "seed_family": cfg.seed_family, "noise": cfg.noise, "miss": cfg.miss,
-            "attempts": attempts[spec.name],
+            "seed": cfg.seed, "seed_family": cfg.seed_family, "noise": cfg.noise, "miss": cfg.miss, "attempts": n,
         }
         path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta)
+        rate = (sum(e.success for e in episodes) if cfg.keep_failures else len(episodes)) / n
         log.info("%s: %d episodes (%d steps) -> %s; expert success %.1f%% over %d attempts", spec.name,
-                 len(episodes), sum(len(e) for e in episodes), path, 100 * rate, attempts[spec.name])
+                 len(episodes), sum(len(e) for e in episodes), path, 100 * rate, n)
         if len(episodes) < cfg.episodes:
             log.error("%s: only %d of %d successful episodes after %d attempts", spec.name, len(episodes),
-                      cfg.episodes, attempts[spec.name])
-            status = 1
+                      cfg.episodes, n)
+            return 1
+        return 0
+
+    pending = list(specs)
+    while pending:  # rounds over every unfinished task, in one pool per round
+        jobs, owners = [], []
+        for spec in pending:
+            need = cfg.episodes - len(kept[spec.name])
+            jobs += [(factories[spec.name], attempt_seed(spec.name, attempts[spec.name] + i)) for i in range(need)]
+            owners += [spec] * need
+            attempts[spec.name] += need
+        left = collections.Counter(spec.name for spec in owners)
+        for spec, ep in zip(owners, iter_jobs(jobs, expert, workers=cfg.workers, desc="collect")):
+            if ep.success or cfg.keep_failures:
+                kept[spec.name].append(ep)
+            left[spec.name] -= 1
+            if not left[spec.name] and (len(kept[spec.name]) >= cfg.episodes or attempts[spec.name] >= budget):
+                status = max(status, finish(spec))
+        pending = [spec for spec in pending if len(kept[spec.name]) < cfg.episodes and attempts[spec.name] < budget]
     return status
 
 

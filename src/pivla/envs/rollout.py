@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import pickle
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -103,34 +103,39 @@ def _worker(job: tuple[EnvFactory, Actor, int]) -> Episode:
     return run_episode(_WORKER_ENVS[key], actor, seed)
 
 
-def run_jobs(jobs: Sequence[tuple[EnvFactory, int]], actor: Actor, *, workers: int = 1,
-             desc: str | None = None) -> list[Episode]:
-    """One episode per (env factory, seed) job, in job order. ``workers > 1`` uses spawned processes
-    (factories and actor must then be picklable, e.g. ``functools.partial(make_env, ...)`` and an un-reset
-    expert); each worker builds one env per distinct factory and reuses it."""
+def iter_jobs(jobs: Sequence[tuple[EnvFactory, int]], actor: Actor, *, workers: int = 1,
+              desc: str | None = None) -> Iterator[Episode]:
+    """One episode per (env factory, seed) job, yielded in job order as each finishes. ``workers > 1`` uses
+    spawned processes (factories and actor must then be picklable, e.g. ``functools.partial(make_env, ...)``
+    and an un-reset expert); each worker builds one env per distinct factory and reuses it."""
     progress = tqdm(total=len(jobs), desc=desc, unit="ep", disable=desc is None, leave=False)
     try:
         if workers <= 1 or len(jobs) <= 1:
             envs: dict[int, Any] = {}  # by identity: in-process factories need not be picklable
-            episodes = []
-            for factory, seed in jobs:
-                key = id(factory)
-                if key not in envs:
-                    envs[key] = factory()
-                episodes.append(run_episode(envs[key], actor, seed))
-                progress.update()
-            for env in envs.values():
-                env.close()
-            return episodes
+            try:
+                for factory, seed in jobs:
+                    key = id(factory)
+                    if key not in envs:
+                        envs[key] = factory()
+                    yield run_episode(envs[key], actor, seed)
+                    progress.update()
+            finally:
+                for env in envs.values():
+                    env.close()
+            return
         ctx = mp.get_context("spawn")
         with ctx.Pool(min(workers, len(jobs))) as pool:
-            episodes = []
             for ep in pool.imap(_worker, [(factory, actor, seed) for factory, seed in jobs]):
-                episodes.append(ep)
+                yield ep
                 progress.update()
-            return episodes
     finally:
         progress.close()
+
+
+def run_jobs(jobs: Sequence[tuple[EnvFactory, int]], actor: Actor, *, workers: int = 1,
+             desc: str | None = None) -> list[Episode]:
+    """Every episode of :func:`iter_jobs`, in job order."""
+    return list(iter_jobs(jobs, actor, workers=workers, desc=desc))
 
 
 def run_episodes(env_factory: EnvFactory, actor: Actor, seeds: Sequence[int], *, workers: int = 1,

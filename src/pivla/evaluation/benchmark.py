@@ -37,6 +37,7 @@ import numpy as np
 
 from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import ExecutorConfig, config_to_dict, executor_config
+from pivla.data.format import read_env_meta, read_episodes, write_episodes
 from pivla.envs import select_tasks
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.envs.tabletop.perturb import EVENT_LEVELS_CM
@@ -187,6 +188,9 @@ class Benchmark:
     def run(self) -> Path:
         cfg = self.cfg
         check_target_divides(self._train_config("main", 0).model)
+        if any(n >= cfg.train_episodes for n in cfg.demo_counts):
+            raise ValueError(f"demo_counts {cfg.demo_counts} must be below train_episodes {cfg.train_episodes}: "
+                             "each is the first n demonstrations of the full set")
         self.out.mkdir(parents=True, exist_ok=True)
         atomic_write_json(self.out / "benchmark_config.json", dataclasses.asdict(cfg))
         path = self.out / "decisions.json"
@@ -199,11 +203,17 @@ class Benchmark:
             self._timed("failure_rollouts", lambda s=s: self.record_rollouts(s))
         self._ready("round2")
         self._decide("failure_round", lambda: self.choose_round(hardest))
-        for name in self.specs:
-            self._ready(name)
-        self._timed("sensitivity", lambda: self.sensitivity(hardest))
-        self._timed("test", lambda: self.test(hardest))
-        return write_benchmark_report(self.out)
+        # Most important first, with the report rewritten after each group, so a long run that is stopped
+        # already reports the headline: main and round2, then the suites' policies, then the ablations.
+        groups = [("main", "round2"), ("seen", "others"), tuple(n for n in self.specs if n.startswith(("abl_", "demos_")))]
+        for i, group in enumerate(groups):
+            for name in group:
+                self._ready(name)
+            self._timed("test", lambda group=group: self.test(hardest, group))
+            if i == 1:
+                self._timed("sensitivity", lambda: self.sensitivity(hardest))
+            write_benchmark_report(self.out)
+        return self.out / "benchmark.md"
 
     def _timed(self, name: str, fn: Callable[[], object]) -> None:
         """Run a stage and add its wall time to timings.json (summed over invocations, kept if interrupted later)."""
@@ -222,17 +232,19 @@ class Benchmark:
 
     def collect(self) -> None:
         """Demonstrations (train seeds) for every policy's data, validation demonstrations (calibration's
-        fallback for a policy that never succeeds). Seeds do not depend on the count, so each smaller set is
-        the first N of the full one."""
+        fallback for a policy that never succeeds). A task's file holds its first N successful seeds, so each
+        smaller set of Fig. 17 is the first n episodes of the full one's files."""
         cfg, data = self.cfg, self.out / "data"
         base = CollectConfig(out="", episodes=cfg.train_episodes, seed_family="train", perturb="randomized_scene",
                              workers=cfg.workers, realism=cfg.realism, image_size=cfg.image_size, noise=cfg.noise,
                              miss=cfg.miss)
-        jobs = [("pick_place", "pick_place", cfg.train_episodes), ("pick_place_seen", "pick_place_seen", cfg.train_episodes)]
-        jobs += [(s, s, cfg.train_episodes) for s in OTHER_SUITES]
-        jobs += [(f"pick_place_{n}", "pick_place", n) for n in cfg.demo_counts]
-        for name, suite, n in jobs:
-            self._collect(dataclasses.replace(base, out=str(data / name), suite=suite, episodes=n))
+        for suite in ("pick_place", "pick_place_seen", *OTHER_SUITES):
+            self._collect(dataclasses.replace(base, out=str(data / suite), suite=suite))
+        for n in cfg.demo_counts:
+            for src in sorted((data / "pick_place").glob("*_demo.hdf5")):
+                dst = data / f"pick_place_{n}" / src.name
+                if not dst.exists():
+                    write_episodes(dst, read_episodes(src)[:n], {**read_env_meta(src), "first_of": str(src)})
         val = dataclasses.replace(base, episodes=max(1, cfg.val_episodes // 2), seed_family="validation", perturb=None,
                                   noise=0.0, miss=0.0)
         for suite in ("pick_place", "pick_place_seen", *OTHER_SUITES):
@@ -240,11 +252,13 @@ class Benchmark:
 
     @staticmethod
     def _collect(cc: CollectConfig) -> None:
+        """Collect the tasks whose file is missing (a task's file is written once it is complete)."""
         out = Path(cc.out)
-        last = select_tasks("tabletop", cc.suite, None)[-1].name
-        if not (out / f"{last}_demo.hdf5").exists():
-            log.info("[collect] %s: %d per task -> %s", cc.suite, cc.episodes, out)
-            if collect_demos(cc) != 0:
+        missing = [str(s.index) for s in select_tasks("tabletop", cc.suite, None)
+                   if not (out / f"{s.name}_demo.hdf5").exists()]
+        if missing:
+            log.info("[collect] %s: %d per task, tasks %s -> %s", cc.suite, cc.episodes, ",".join(missing), out)
+            if collect_demos(dataclasses.replace(cc, tasks=",".join(missing))) != 0:
                 raise RuntimeError(f"collection of {cc.suite} into {out} fell short of {cc.episodes} per task")
 
     def run_dir(self, name: str, seed: int) -> Path:
@@ -394,13 +408,16 @@ class Benchmark:
         unique = {(p, c.name, label): (p, c, label, e) for p, c, label, e in plan}  # tables share evaluations
         return list(unique.values())
 
-    def test(self, hardest: str) -> None:
+    def test(self, hardest: str, policies: Iterable[str]) -> None:
+        """The test plan's evaluations of these policies (test_plan.json lists the whole plan)."""
         plan = self.test_plan(hardest)
         atomic_write_json(self.out / "test_plan.json", [
             {"policy": p, "cell": dataclasses.asdict(c), "label": lb, "executor": config_to_dict(e)} for p, c, lb, e in plan])
+        wanted = set(policies)
         for seed in range(self.cfg.seeds):
             for policy, cell, label, executor in plan:
-                self.evaluate(seed, "test", policy, cell, label, executor)
+                if policy in wanted:
+                    self.evaluate(seed, "test", policy, cell, label, executor)
 
 
 def run_benchmark(cfg: BenchmarkConfig) -> Path:
