@@ -52,6 +52,7 @@ from pivla.envs.libero._skills import Command, ExpertConfig, PlanningError, Skil
 MAX_YAW = 2.6
 SPOT_SPACING = 0.01  # candidate spots in a region are this far apart (m)
 SLOPE_TOLERANCE = 0.025  # under a placed object's base, surfaces may lie this far below its rest (a sloping shelf)
+FLAT_HEIGHT = 0.025  # a dish lower than this (m) and wider than the open gripper is grasped across a chord
 
 
 @dataclass
@@ -356,6 +357,8 @@ class PickPlace(Skill):
         z_top = hi[2]
         hit, root = sc.ray_down(centre[:2], z_top + 0.05)
         concave = root == self.obj and hit < z_top - 0.5 * (z_top - lo[2])
+        if concave and z_top - lo[2] < FLAT_HEIGHT and float(np.min(half[:2])) > FINGER_TIP[0]:
+            return self._plan_chord(half, lo, hi)
         if concave:
             return self._plan_rim(half, hi)
         # Convex object: grasp across the narrow side, fingertips a little below the top.
@@ -367,6 +370,47 @@ class PickPlace(Skill):
         if self._fingers_blocked(grasp, plan.yaw, tip_z):
             return self._plan_top(lo, hi, floor_z) or plan
         return plan
+
+    def _plan_chord(self, half: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> _Plan:
+        """A grasp for a dish too flat for a rim grasp (a plate: its rim is a 5 mm lip sloping up 20 degrees,
+        up which an inner finger slides): the fingers close across a chord near the edge, just outside it,
+        on the lip's two ends (tilted 20 degrees from vertical: the squeeze stays within friction), the chord
+        facing the target and within reach."""
+        sc, cfg = self.scene, self.config
+        origin = sc.d.xpos[self.obj][:2].copy()
+        radius = float(np.mean(half[:2]))
+        # The gripper axis as far out as keeps the open fingers' inner corners (a finger is 1.8 cm wide) 2 mm
+        # off the edge: closing, they meet the lip's ends there.
+        inner = FINGER_TIP[0]
+        out = np.sqrt(max(radius**2 - inner**2, 0.0)) + FINGER_TIP[2] + 0.002
+        to_place = self._place_xy() - origin
+        lift_above = self._lift_above_grasp()
+        best: tuple[float, _Plan] | None = None
+        for theta in np.linspace(0, 2 * np.pi, 24, endpoint=False):
+            radial = np.array([np.cos(theta), np.sin(theta)])
+            tangent = np.array([-radial[1], radial[0]])
+            axis = origin + radial * out
+            # The fingertips 4 mm under the lip's top where they meet it (lower, they pass under the raised
+            # lip and close on nothing).
+            ends = [origin + radial * (out - FINGER_TIP[2] - 0.006) + tangent * side * (inner - 0.006)
+                    for side in (-1, 1)]
+            lip = min(sc.ray_down(e, hi[2] + 0.02)[0] for e in ends)
+            tip_z = max(lip - 0.004, self._floor_below(lo, hi) + cfg.floor_clearance)
+            grasp = np.array([*axis, tip_z + TIP_BELOW_EEF])
+            yaw = closing_yaw(tangent)
+            if self._fingers_blocked(grasp, yaw, tip_z):
+                continue
+            stretch = max(wrist_distance(sc.shoulder, g) for g in (grasp, grasp + [0, 0, lift_above],
+                                                                   grasp + [*to_place, 0.0]))
+            score = 0.1 * float(radial @ to_place) / max(float(np.linalg.norm(to_place)), 1e-9) \
+                - 2.0 * max(stretch - COMFORT_REACH, 0.0) - 0.004 * abs(yaw)
+            if any(np.linalg.norm(grasp[:2] - f) < cfg.retry_distance for f in self.failed):
+                score -= 0.5
+            if best is None or score > best[0]:
+                best = (score, _Plan(grasp, yaw, grasp[2] + lift_above))
+        if best is None:
+            raise PlanningError(f"no chord of {sc.body_name(self.obj)!r} is clear for the fingers")
+        return best[1]
 
     def _plan_handle(self, spot: _Spot, lo: np.ndarray, hi: np.ndarray) -> _Plan | None:
         """A grasp for a spot inside an enclosure whose ceiling is too low for the hand (10 cm tall pointing
