@@ -59,7 +59,7 @@ def test_observation_keys_shapes_and_reset(env):
     assert obs["ee_pos"].shape == (3,) and obs["ee_ori"].shape == (3,)
     assert obs["gripper_states"].shape == (2,) and obs["joint_states"].shape == (7,)
     assert obs["instruction"] == env.instruction and "bowl" in obs["instruction"]
-    assert env.observation_space.contains(obs)
+    assert env.observation_space.contains(dict(obs))
     # The same official init state gives the same scene (to the solver's warm start, which the state omits).
     again, _ = env.reset(options={"init_state": 3})
     np.testing.assert_allclose(again["joint_states"], obs["joint_states"], atol=1e-3)
@@ -84,6 +84,79 @@ def test_images_are_upright(env):
             assert same > 0.8 and same > flipped + 0.2, (key, same, flipped)
     finally:
         renderer.close()
+
+
+@requires_libero
+def test_frames_are_robosuite_camera_observables_rendered_when_read():
+    """An image is rendered when first read and is, pixel for pixel, what robosuite's camera observable gives
+    on the same state (flipped upright); testing for a key does not render, and reading a frame after the env
+    stepped on raises."""
+    from pivla.envs import make_env
+    from pivla.envs.libero._backend import libero
+    from pivla.envs.libero.env import _bddl_path, _benchmark
+
+    env = make_env("libero", "libero_spatial", 0, image_size=SIZE, settle_steps=0)
+    lib = libero()
+    bench = _benchmark("libero_spatial")
+    ref = lib.ControlEnv(bddl_file_name=_bddl_path(bench, 0), use_camera_obs=True, has_offscreen_renderer=True,
+                         camera_names=["agentview", "robot0_eye_in_hand"], camera_heights=SIZE, camera_widths=SIZE,
+                         ignore_done=True, hard_reset=False)
+    try:
+        ref.reset()
+        flags = lib.mujoco.mjtRndFlag
+        ref.sim._render_context_offscreen.scn.flags[flags.mjRND_REFLECTION] = 0  # as the adapter renders
+        sim, calls = env.robosuite_env.sim, []
+        real = sim.render
+        sim.render = lambda *a, **k: calls.append(k["camera_name"]) or real(*a, **k)
+        obs, _ = env.reset(options={"init_state": 0})
+        # the same scene: fixtures are placed by the model (sampled at each reset), the rest is the state
+        ref.sim.model.body_pos[:] = sim.model.body_pos
+        ref.sim.model.body_quat[:] = sim.model.body_quat
+        ref.set_init_state(sim.get_state().flatten())
+        expected = ref.env._get_observations(force_update=True)
+        assert "agentview_rgb" in obs and not calls
+        for key, cam in (("agentview_rgb", "agentview"), ("eye_in_hand_rgb", "robot0_eye_in_hand")):
+            np.testing.assert_array_equal(obs[key], expected[f"{cam}_image"][::-1])
+            obs[key]  # kept: read again without rendering
+        assert calls == ["agentview", "robot0_eye_in_hand"]
+        unread, *_ = env.step(np.zeros(7))
+        unread["joint_states"]
+        env.step(np.zeros(7))
+        assert len(calls) == 2  # proprio only: nothing rendered
+        with pytest.raises(RuntimeError, match="after the env moved on"):
+            unread["agentview_rgb"]
+        np.testing.assert_array_equal(obs["agentview_rgb"], expected["agentview_image"][::-1])  # read in time
+    finally:
+        ref.close()
+        env.close()
+
+
+@requires_libero
+def test_a_fixed_horizon_without_monitoring_renders_only_its_query_steps(synthetic_data, tmp_path, env):
+    """Why LIBERO's fixed-horizon evaluation is ~3x faster with baseline monitoring off: between queries
+    nothing reads the cameras, so nothing is rendered."""
+    from pivla.control.executors import executor_config, make_executor
+    from pivla.control.runner import run_episode
+    from pivla.policy import load_policy
+    from pivla.training.trainer import train
+    from tests.conftest import tiny_train_config
+
+    policy = load_policy(train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, val_fraction=0.0)))
+    sim, calls = env.robosuite_env.sim, []
+    real = sim.render
+    sim.render = lambda *a, **k: calls.append(k["camera_name"]) or real(*a, **k)
+    try:
+        for monitor in (False, True):
+            calls.clear()
+            res = run_episode(env, policy, make_executor(executor_config("fixed", monitor=monitor)), seed=0,
+                              reset_options={"init_state": 0})
+            assert res.steps == 4 and res.queries == 1
+            if monitor:  # the trace's U reads the target encoder's camera on every step
+                assert calls.count("agentview") == res.steps, calls
+            else:
+                assert len(calls) == 2 * res.queries, calls
+    finally:
+        del sim.render
 
 
 @requires_libero

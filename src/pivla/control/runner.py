@@ -72,7 +72,7 @@ def run_episode(env: Any, policy: Any, executor: BaseExecutor, seed: int | None 
     plan events come back with the outcome. ``keep_episode`` also returns the recorded Episode (for
     rollout datasets that teach the value head what failure looks like)."""
     actor = ExecutorActor(policy, executor)
-    ep = _run_actor_episode(env, actor, seed, max_steps, reset_options)
+    ep = _run_actor_episode(env, actor, seed, max_steps, reset_options, frames=keep_episode)
     return EpisodeResult(
         success=bool(ep.success), steps=len(ep), executor=executor.name, trace=list(executor.trace),
         plans=list(executor.plans), step_times=list(actor.step_times), seed=seed,

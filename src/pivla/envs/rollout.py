@@ -37,23 +37,25 @@ def episode_seed(seed: int, index: int) -> int:
 
 
 def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None,
-                reset_options: dict | None = None) -> Episode:
+                reset_options: dict | None = None, frames: bool = True) -> Episode:
     """Run one episode until success (terminated), the env's step limit (truncated) or ``max_steps``;
-    ``reset_options`` go to ``env.reset`` (e.g. LIBERO's ``{"init_state": i}``)."""
+    ``reset_options`` go to ``env.reset`` (e.g. LIBERO's ``{"init_state": i}``). ``frames=False`` keeps no
+    observations in the Episode (its actions, rewards and outcome only), so an env that renders only what
+    is read (LIBERO) renders only what the actor reads."""
     obs, info = env.reset(seed=seed, options=reset_options)
     if hasattr(actor, "reset"):
         actor.reset(env, seed)
     task = getattr(env.unwrapped, "task", None)
     limit = max_steps or getattr(task, "max_steps", None) or 1000
-    frames: dict[str, list[np.ndarray]] = {k: [] for k, v in obs.items() if k != "instruction"}
+    kept: dict[str, list[np.ndarray]] = {k: [] for k in obs if k != "instruction"} if frames else {}
     actions, rewards, dones = [], [], []
     instruction = obs.get("instruction", "")
     success = bool(info.get("success", False))
     extra = int(getattr(actor, "follow_through", 0))
     for _ in range(limit):
         action = np.asarray(actor(obs), dtype=np.float32)
-        for key in frames:
-            frames[key].append(obs[key])
+        for key, values in kept.items():
+            values.append(obs[key])
         label = getattr(actor, "label", None)
         obs, reward, terminated, truncated, info = env.step(action)
         actions.append(action if label is None else np.asarray(label, dtype=np.float32))
@@ -81,7 +83,7 @@ def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None,
     }
     return Episode(
         actions=np.array(actions, np.float32).reshape(-1, 7),
-        obs={k: np.stack(v) for k, v in frames.items()},
+        obs={k: np.stack(v) for k, v in kept.items()},
         instruction=instruction,
         rewards=np.array(rewards, np.float32),
         dones=np.array(dones, np.uint8),

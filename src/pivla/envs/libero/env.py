@@ -12,9 +12,10 @@ regions (``options={"init": "random", "seed": s}``), for demonstrations and vali
 not reuse the evaluation's states: LIBERO's own placement samplers draw it, seeded, so a seed always gives
 the same scene, and a draw that matches one of the 50 official states is drawn again.
 
-Speed: only the cameras the policy uses are rendered, at its resolution, with reflections switched off;
-cameras are skipped during the settling steps, and ``render=False`` builds the scene without any renderer
-(privileged-state experts do not need pixels). The model is not reloaded on every reset (``hard_reset``
+Speed: only the cameras the policy uses are rendered, at its resolution, with reflections switched off, and
+only when an image is read (:class:`Observation`): a fixed horizon that looks at the pixels on query steps only
+renders a fifth of the frames, and the settling steps render none. ``render=False`` builds the scene without
+any renderer (privileged-state experts do not need pixels). The model is not reloaded on every reset (``hard_reset``
 off): the official initial state overwrites the whole simulator state anyway.
 """
 
@@ -25,6 +26,7 @@ import functools
 import io
 import os
 import string
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -129,6 +131,32 @@ def quat_to_euler(quat_xyzw: np.ndarray) -> np.ndarray:
     return np.array([roll, pitch, yaw], dtype=np.float32)
 
 
+class Observation(Mapping[str, Any]):
+    """An observation whose camera images are rendered when first read, then kept. Rendering is most of a
+    step's cost (about 0.2 s of 0.25 s for two 128-px cameras on a CPU), and a chunking executor reads the
+    pixels only on the steps it queries the policy. Reading an image after the env has stepped on raises:
+    the frame would show a later state."""
+
+    def __init__(self, images: dict[str, Callable[[], np.ndarray]], values: dict[str, Any]) -> None:
+        self._pending = images
+        self._values = values
+        self._keys = [*images, *values]
+
+    def __getitem__(self, key: str) -> Any:
+        if key in self._pending:
+            self._values[key] = self._pending.pop(key)()
+        return self._values[key]
+
+    def __contains__(self, key: object) -> bool:  # without rendering (Mapping's default reads the value)
+        return key in self._pending or key in self._values
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+
 @dataclass(frozen=True)
 class LiberoEnvConfig:
     """How one LIBERO task is simulated and observed."""
@@ -178,7 +206,7 @@ class LiberoEnv(gym.Env):
         cams = [CAMERAS[c] for c in config.cameras] if config.render else []
         self._env = lib.ControlEnv(
             bddl_file_name=_bddl_path(bench, self.task_index),
-            use_camera_obs=bool(cams),
+            use_camera_obs=False,  # frames are rendered when read (Observation), never inside robosuite's step
             has_offscreen_renderer=bool(cams),
             camera_names=cams or ["agentview"],
             camera_heights=config.image_size,
@@ -194,6 +222,7 @@ class LiberoEnv(gym.Env):
         self.instruction: str = self._env.language_instruction.strip()
         self._cams = cams
         self._t = 0
+        self._frame = 0  # counts resets and steps: a lazily rendered image belongs to one of them
         self.episode_id = 0  # incremented by every reset, so stateful actors notice a new episode
         self._last_raw: dict[str, np.ndarray] | None = None
         s = config.image_size
@@ -222,10 +251,6 @@ class LiberoEnv(gym.Env):
             raise RuntimeError("call reset() first")
         return self._last_raw
 
-    def _set_cameras(self, enabled: bool) -> None:
-        for cam in self._cams:
-            self._env.env.modify_observable(f"{cam}_image", "enabled", enabled)
-
     def _configure_renderer(self) -> None:
         ctx = self._env.sim._render_context_offscreen if self._cams else None
         if ctx is not None:
@@ -233,18 +258,25 @@ class LiberoEnv(gym.Env):
             ctx.scn.flags[flags.mjRND_REFLECTION] = int(self.config.reflections)
             ctx.scn.flags[flags.mjRND_SHADOW] = int(self.config.shadows)
 
-    def _obs(self, raw: dict[str, np.ndarray]) -> dict[str, Any]:
+    def _render(self, key: str, frame: int) -> np.ndarray:
+        """One camera's image of the current state: the frame robosuite's camera observable would give
+        (pixel for pixel), flipped upright (OpenGL's row order puts the bottom row first)."""
+        if frame != self._frame:
+            raise RuntimeError(f"{key} was read after the env moved on: the frame would show a later state")
+        s = self.config.image_size
+        return np.ascontiguousarray(self._env.sim.render(camera_name=CAMERAS[key], width=s, height=s)[::-1])
+
+    def _obs(self, raw: dict[str, np.ndarray]) -> Observation:
+        self._frame += 1
+        images = {key: functools.partial(self._render, key, self._frame) for key in self.config.cameras} \
+            if self._cams else {}
         obs: dict[str, Any] = {}
-        if self._cams:
-            for key in self.config.cameras:
-                # robosuite renders in OpenGL row order (bottom row first): flip rows to get the upright image.
-                obs[key] = np.ascontiguousarray(raw[f"{CAMERAS[key]}_image"][::-1])
         obs["ee_pos"] = np.asarray(raw["robot0_eef_pos"], np.float32)
         obs["ee_ori"] = quat_to_euler(raw["robot0_eef_quat"])
         obs["gripper_states"] = np.asarray(raw["robot0_gripper_qpos"], np.float32)
         obs["joint_states"] = np.asarray(raw["robot0_joint_pos"], np.float32)
         obs["instruction"] = self.instruction
-        return obs
+        return Observation(images, obs)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, Any], dict]:
         """Start from an official init state or from a freshly sampled scene.
@@ -266,7 +298,6 @@ class LiberoEnv(gym.Env):
             raise ValueError(f"reset options: init must be one of {INIT_MODES} (with 'seed') or 'init_state' "
                              f"must be given alone; got {options | {'init': mode}}")
         self._configure_renderer()
-        self._set_cameras(False)
         if mode == "random":
             draw_seed = int(options["seed"]) if "seed" in options else int(self.np_random.integers(2**31))
             self._arm_noise(True)
@@ -281,9 +312,6 @@ class LiberoEnv(gym.Env):
             raw = self._env.set_init_state(self.init_states[idx])
         for _ in range(self.config.settle_steps):
             raw, _, _, _ = self._env.step(NOOP_ACTION)
-        if self._cams:
-            self._set_cameras(True)
-            raw = self._env.env._get_observations(force_update=True)
         self._last_raw = raw
         self._t = 0
         self.episode_id += 1
