@@ -53,13 +53,15 @@ def test_collect_one_libero_episode(tmp_path):
     assert ep.obs["joint_states"].shape == (T, 7) and ep.obs["ee_pos"].shape == (T, 3)
     assert ep.obs["agentview_rgb"].std() > 5  # real frames, not blank buffers
     assert np.abs(ep.actions).max() <= 1.0 and set(np.unique(ep.actions[:, 6])) <= {-1.0, 1.0}
-    assert ep.rewards.sum() == pytest.approx(1.0) and ep.dones[-1] and ep.meta["init_state"] == 0
+    assert ep.rewards.sum() == pytest.approx(1.0) and ep.dones[-1]
+    assert ep.meta["init_state"] is None and ep.meta["init_seed"] is not None  # a sampled scene, not official
     # The gripper closes (grasp) and opens again (release) in a successful pick-and-place.
     grip = ep.actions[:, 6]
     assert grip[0] == -1 and (grip == 1).any() and grip[-1] == -1
     with h5py.File(path) as f:
         meta = json.loads(f["data"].attrs["env_args"])
-    assert meta["env"] == "libero" and meta["task_index"] == 5 and meta["attempts"] == 1 and meta["init_states"] == [0]
+    assert meta["env"] == "libero" and meta["task_index"] == 5 and meta["attempts"] == 1
+    assert meta["init"] == "random" and meta["init_states"] == [None] and meta["init_seeds"] == [ep.meta["init_seed"]]
 
 
 @requires_libero
