@@ -144,7 +144,8 @@ class Observation(Mapping[str, Any]):
 
     def __getitem__(self, key: str) -> Any:
         if key in self._pending:
-            self._values[key] = self._pending.pop(key)()
+            self._values[key] = self._pending[key]()
+            del self._pending[key]
         return self._values[key]
 
     def __contains__(self, key: object) -> bool:  # without rendering (Mapping's default reads the value)
