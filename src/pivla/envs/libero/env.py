@@ -49,7 +49,8 @@ INIT_MODES = ("official", "random")
 # A sampled scene whose simulator state is within this of an official init state (every qpos and qvel entry)
 # counts as that state: positions are sampled over centimetres, so only a copy comes this close.
 OFFICIAL_MATCH_TOL = 1e-4
-MAX_REDRAWS = 20  # sampled scenes drawn again at most this often when they match an official state
+MAX_REDRAWS = 20  # sampled scenes drawn again at most this often (an official state's copy, an unsound scene)
+SETTLE_TOLERANCE = 0.02  # a sampled object sliding more than this (m) while the scene settles was misplaced
 
 
 def step_limit(suite: str) -> int:
@@ -221,6 +222,8 @@ class LiberoEnv(gym.Env):
             initialization_noise="default",
         )
         self.instruction: str = self._env.language_instruction.strip()
+        built = lib.mujoco.MjModel.from_xml_string(self._env.env.model.get_xml())  # before any placement
+        self._built_pose = (built.body_pos.copy(), built.body_quat.copy())
         self._cams = cams
         self._t = 0
         self._frame = 0  # counts resets and steps: a lazily rendered image belongs to one of them
@@ -302,7 +305,7 @@ class LiberoEnv(gym.Env):
         if mode == "random":
             draw_seed = int(options["seed"]) if "seed" in options else int(self.np_random.integers(2**31))
             self._arm_noise(True)
-            raw, redraws = self._sample_scene(draw_seed)
+            raw, redraws = self._sample_scene(draw_seed)  # settled
             self.init_state, self.init_seed = None, draw_seed
         else:
             idx = int(options.get("init_state", self._next_init)) % len(self.init_states)
@@ -310,9 +313,8 @@ class LiberoEnv(gym.Env):
             self.init_state, self.init_seed, redraws = idx, None, 0
             self._arm_noise(False)
             self._seeded_reset(int(self.np_random.integers(2**32)))
-            raw = self._env.set_init_state(self.init_states[idx])
-        for _ in range(self.config.settle_steps):
-            raw, _, _, _ = self._env.step(NOOP_ACTION)
+            self._env.set_init_state(self.init_states[idx])
+            raw = self._settle()
         self._last_raw = raw
         self._t = 0
         self.episode_id += 1
@@ -330,7 +332,13 @@ class LiberoEnv(gym.Env):
             robot.initialization_noise = {"magnitude": 0.02 if on else 0.0, "type": "gaussian"}
 
     def _seeded_reset(self, seed: int) -> dict[str, np.ndarray]:
-        """LIBERO's reset (placement samplers included) with NumPy's global generator seeded, then restored."""
+        """LIBERO's reset (placement samplers included) with NumPy's global generator seeded, then restored.
+        The model's body placements are put back as built first: LIBERO places an object in a fixture's region
+        (a bowl in a drawer) at the region's position as computed with the fixture where the model has it, which
+        is where it stands after a hard reset only; after a soft one the fixture's placement would count twice
+        (the bowl lands a metre above the drawer)."""
+        model = self._env.sim.model
+        model.body_pos[:], model.body_quat[:] = self._built_pose
         global_state = np.random.get_state()
         np.random.seed(seed % 2**32)
         try:
@@ -338,15 +346,35 @@ class LiberoEnv(gym.Env):
         finally:
             np.random.set_state(global_state)
 
+    def _settle(self) -> dict[str, np.ndarray]:
+        """The settling steps (gripper open, arm still); LIBERO's observation after them."""
+        raw = self._env.env._get_observations()
+        for _ in range(self.config.settle_steps):
+            raw, _, _, _ = self._env.step(NOOP_ACTION)
+        return raw
+
+    def _object_positions(self) -> np.ndarray:
+        rs = self._env.env
+        return np.array([rs.sim.data.body_xpos[rs.sim.model.body_name2id(obj.root_body)]
+                         for obj in rs.objects_dict.values()]).reshape(-1, 3)
+
     def _sample_scene(self, seed: int) -> tuple[dict[str, np.ndarray], int]:
-        """A scene sampled from the BDDL regions with ``seed``, drawn again (from seeds derived from it) while
-        it matches an official init state; returns LIBERO's observation and the number of redraws."""
+        """A settled scene sampled from the BDDL regions with ``seed``, drawn again (from seeds derived from it)
+        while it matches an official init state or an object slides away from where it was placed while the
+        scene settles (objects are placed a few centimetres up and drop; one placed against another is pushed
+        aside or topples); returns LIBERO's observation and the number of redraws."""
         for redraw in range(MAX_REDRAWS + 1):
             draw = seed if redraw == 0 else int(np.random.SeedSequence([seed, redraw]).generate_state(1)[0])
-            raw = self._seeded_reset(draw)
-            if self.official_match(self._env.get_sim_state()) is None:
+            self._seeded_reset(draw)
+            if self.official_match(self._env.get_sim_state()) is not None:
+                continue
+            placed = self._object_positions()
+            raw = self._settle()
+            slid = np.linalg.norm((self._object_positions() - placed)[:, :2], axis=1)  # they drop a few cm
+            if slid.max(initial=0.0) <= SETTLE_TOLERANCE:
                 return raw, redraw
-        raise RuntimeError(f"{MAX_REDRAWS + 1} scenes sampled from seed {seed} all match official init states")
+        raise RuntimeError(f"{MAX_REDRAWS + 1} scenes sampled from seed {seed} all match official init states or "
+                           f"have an object sliding more than {SETTLE_TOLERANCE} m while settling")
 
     def official_match(self, state: np.ndarray) -> int | None:
         """Index of the official init state equal to the flattened simulator ``state`` (within
