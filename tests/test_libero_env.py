@@ -310,12 +310,10 @@ def test_random_init_config_and_bad_reset_options():
 
 
 @requires_libero
-def test_a_sampled_object_in_a_fixture_starts_in_it(monkeypatch):
+def test_a_sampled_object_in_a_fixture_starts_in_it():
     """LIBERO-Spatial task 4's bowl starts in the top drawer in sampled scenes as in the official states (placed
-    with the drawer counted twice, after a soft reset, it fell a metre onto the cabinet and off the table); a
-    scene with an object sliding while it settles is drawn again."""
+    with the drawer counted twice, after a soft reset, it fell a metre onto the cabinet and off the table)."""
     from pivla.envs import make_env
-    from pivla.envs.libero import env as libero_env
 
     env = make_env("libero", "libero_spatial", 4, render=False)
     try:
@@ -327,8 +325,5 @@ def test_a_sampled_object_in_a_fixture_starts_in_it(monkeypatch):
             env.reset(options={"init": "random", "seed": seed})
             pos = rs.sim.data.body_xpos[bowl]
             assert abs(pos[2] - official[2]) < 0.02 and np.linalg.norm(pos[:2] - official[:2]) < 0.1, (pos, official)
-        monkeypatch.setattr(libero_env, "SETTLE_TOLERANCE", -1.0)
-        with pytest.raises(RuntimeError, match="sliding"):
-            env.reset(options={"init": "random", "seed": 2})
     finally:
         env.close()
