@@ -86,6 +86,14 @@ def test_images_are_upright(env):
         renderer.close()
 
 
+def _count_renders(env) -> list[str]:
+    """Record the camera of every frame the env's renderer draws from now on (``del sim.render`` undoes it)."""
+    sim, calls = env.robosuite_env.sim, []
+    real = sim.render
+    sim.render = lambda *a, **k: calls.append(k["camera_name"]) or real(*a, **k)
+    return calls
+
+
 @requires_libero
 def test_frames_are_robosuite_camera_observables_rendered_when_read():
     """An image is rendered when first read and is, pixel for pixel, what robosuite's camera observable gives
@@ -105,9 +113,7 @@ def test_frames_are_robosuite_camera_observables_rendered_when_read():
         ref.reset()
         flags = lib.mujoco.mjtRndFlag
         ref.sim._render_context_offscreen.scn.flags[flags.mjRND_REFLECTION] = 0  # as the adapter renders
-        sim, calls = env.robosuite_env.sim, []
-        real = sim.render
-        sim.render = lambda *a, **k: calls.append(k["camera_name"]) or real(*a, **k)
+        sim, calls = env.robosuite_env.sim, _count_renders(env)
         obs, _ = env.reset(options={"init_state": 0})
         # the same scene: fixtures are placed by the model (sampled at each reset), the rest is the state
         ref.sim.model.body_pos[:] = sim.model.body_pos
@@ -142,9 +148,7 @@ def test_a_fixed_horizon_without_monitoring_renders_only_its_query_steps(synthet
     from tests.conftest import tiny_train_config
 
     policy = load_policy(train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, val_fraction=0.0)))
-    sim, calls = env.robosuite_env.sim, []
-    real = sim.render
-    sim.render = lambda *a, **k: calls.append(k["camera_name"]) or real(*a, **k)
+    calls = _count_renders(env)
     try:
         for monitor in (False, True):
             calls.clear()
@@ -156,7 +160,7 @@ def test_a_fixed_horizon_without_monitoring_renders_only_its_query_steps(synthet
             else:
                 assert len(calls) == 2 * res.queries, calls
     finally:
-        del sim.render
+        del env.robosuite_env.sim.render
 
 
 @requires_libero

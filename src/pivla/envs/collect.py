@@ -104,6 +104,10 @@ def collect_demos(cfg: CollectConfig) -> int:
     budget = 3 * cfg.episodes + 10
     status = 0
 
+    def settled(name: str) -> bool:
+        """A task is done when it has its episodes or has used up its attempts."""
+        return len(kept[name]) >= cfg.episodes or attempts[name] >= budget
+
     def finish(spec: TaskSpec) -> int:
         """Write one complete (or exhausted) task, as soon as its last episode of the round is in."""
         episodes, n = kept[spec.name], attempts[spec.name]
@@ -141,9 +145,9 @@ def collect_demos(cfg: CollectConfig) -> int:
             if ep.success or cfg.keep_failures:
                 kept[spec.name].append(ep)
             left[spec.name] -= 1
-            if not left[spec.name] and (len(kept[spec.name]) >= cfg.episodes or attempts[spec.name] >= budget):
+            if not left[spec.name] and settled(spec.name):
                 status = max(status, finish(spec))
-        pending = [spec for spec in pending if len(kept[spec.name]) < cfg.episodes and attempts[spec.name] < budget]
+        pending = [spec for spec in pending if not settled(spec.name)]
     return status
 
 

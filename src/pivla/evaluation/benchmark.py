@@ -240,11 +240,12 @@ class Benchmark:
                              miss=cfg.miss)
         for suite in ("pick_place", "pick_place_seen", *OTHER_SUITES):
             self._collect(dataclasses.replace(base, out=str(data / suite), suite=suite))
-        for n in cfg.demo_counts:
-            for src in sorted((data / "pick_place").glob("*_demo.hdf5")):
-                dst = data / f"pick_place_{n}" / src.name
-                if not dst.exists():
-                    write_episodes(dst, read_episodes(src)[:n], {**read_env_meta(src), "first_of": str(src)})
+        for src in sorted((data / "pick_place").glob("*_demo.hdf5")):
+            todo = [n for n in cfg.demo_counts if not (data / f"pick_place_{n}" / src.name).exists()]
+            if todo:  # one read of the full file for every smaller set
+                episodes, meta = read_episodes(src), {**read_env_meta(src), "first_of": str(src)}
+                for n in todo:
+                    write_episodes(data / f"pick_place_{n}" / src.name, episodes[:n], meta)
         val = dataclasses.replace(base, episodes=max(1, cfg.val_episodes // 2), seed_family="validation", perturb=None,
                                   noise=0.0, miss=0.0)
         for suite in ("pick_place", "pick_place_seen", *OTHER_SUITES):

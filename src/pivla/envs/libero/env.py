@@ -225,7 +225,6 @@ class LiberoEnv(gym.Env):
         self._built_pose = (built.body_pos.copy(), built.body_quat.copy())
         self._cams = cams
         self._t = 0
-        self._frame = 0  # counts resets and steps: a lazily rendered image belongs to one of them
         self.episode_id = 0  # incremented by every reset, so stateful actors notice a new episode
         self._last_raw: dict[str, np.ndarray] | None = None
         s = config.image_size
@@ -261,18 +260,19 @@ class LiberoEnv(gym.Env):
             ctx.scn.flags[flags.mjRND_REFLECTION] = int(self.config.reflections)
             ctx.scn.flags[flags.mjRND_SHADOW] = int(self.config.shadows)
 
-    def _render(self, key: str, frame: int) -> np.ndarray:
+    def _render(self, key: str, frame: tuple[int, int]) -> np.ndarray:
         """One camera's image of the current state: the frame robosuite's camera observable would give
-        (pixel for pixel), flipped upright (OpenGL's row order puts the bottom row first)."""
-        if frame != self._frame:
+        (pixel for pixel), flipped upright (OpenGL's row order puts the bottom row first). ``frame`` is the
+        (episode, step) the image was asked for."""
+        if frame != (self.episode_id, self._t):
             raise RuntimeError(f"{key} was read after the env moved on: the frame would show a later state")
         s = self.config.image_size
         return np.ascontiguousarray(self._env.sim.render(camera_name=CAMERAS[key], width=s, height=s)[::-1])
 
     def _obs(self, raw: dict[str, np.ndarray]) -> Observation:
-        self._frame += 1
-        images = {key: functools.partial(self._render, key, self._frame) for key in self.config.cameras} \
-            if self._cams else {}
+        frame = (self.episode_id, self._t)
+        cameras = self.config.cameras if self._cams else ()
+        images = {key: functools.partial(self._render, key, frame) for key in cameras}
         obs: dict[str, Any] = {}
         obs["ee_pos"] = np.asarray(raw["robot0_eef_pos"], np.float32)
         obs["ee_ori"] = quat_to_euler(raw["robot0_eef_quat"])
