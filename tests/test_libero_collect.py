@@ -94,3 +94,55 @@ def test_libero_run_end_to_end_on_one_task(tmp_path):
     mtime = (tmp_path / "run" / "policy" / "model.safetensors").stat().st_mtime_ns
     run_libero(cfg)  # every stage done: nothing is redone
     assert (tmp_path / "run" / "policy" / "model.safetensors").stat().st_mtime_ns == mtime
+
+
+@requires_libero
+@pytest.mark.slow
+def test_an_interrupted_libero_task_resumes_at_its_next_attempt(tmp_path, monkeypatch):
+    """Kept episodes and the attempt count survive an interruption (~40 s): the rerun plays only the attempts
+    not yet made and the task's file holds the episode recorded before the interruption."""
+    from pivla.data.datasets import read_dataset
+    from pivla.envs import collect
+
+    played, real = [], collect.run_episode
+
+    def interrupted_after_one(env, actor, seed, **kw):
+        if played:
+            raise KeyboardInterrupt
+        played.append(real(env, actor, seed, **kw))
+        return played[-1]
+
+    args = ["collect", "--env", "libero", "--suite", "libero_spatial", "--tasks", "5", "--episodes", "2",
+            "--out", str(tmp_path), "--image-size", "32"]
+    monkeypatch.setattr(collect, "run_episode", interrupted_after_one)
+    with pytest.raises(KeyboardInterrupt):
+        main(args)
+    assert not list(tmp_path.glob("*.hdf5")) and played[0].success
+    replayed = []
+
+    def counted(env, actor, seed, **kw):
+        replayed.append(seed)
+        return real(env, actor, seed, **kw)
+
+    monkeypatch.setattr(collect, "run_episode", counted)
+    assert main(args) == 0
+    first, second = read_dataset(tmp_path)
+    np.testing.assert_array_equal(first.actions, played[0].actions)
+    assert first.meta["init_seed"] == played[0].meta["init_seed"] != second.meta["init_seed"]
+    with h5py.File(next(tmp_path.glob("*.hdf5"))) as f:
+        attempts = json.loads(f["data"].attrs["env_args"])["attempts"]
+    assert len(replayed) == attempts - 1  # attempt 0 was not played again
+    assert not (tmp_path / ".partial").exists()
+
+
+def test_an_unfinished_task_with_other_settings_is_refused(tmp_path):
+    from pivla.envs.collect import CollectConfig, _PartialTask
+    from pivla.io import atomic_write_json
+
+    cfg = CollectConfig(out=str(tmp_path), env="libero", suite="libero_spatial", noise=0.1)
+    partial = _PartialTask(cfg, 5, "task5")
+    atomic_write_json(partial.dir / "progress.json", {"settings": {**partial.settings, "noise": 0.0}, "attempts": 3,
+                                                      "kept": [0]})
+    with pytest.raises(ValueError, match="unfinished collection with other settings"):
+        partial.load()
+    assert (partial.dir / "progress.json").exists()

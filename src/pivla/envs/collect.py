@@ -10,16 +10,19 @@ that task is complete.
 from __future__ import annotations
 
 import collections
+import contextlib
 import functools
 import logging
 import multiprocessing as mp
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from pivla.data.format import write_episodes
+from pivla.data.format import Episode, read_episodes, write_episodes
 from pivla.envs import TaskSpec, seeds, select_tasks
 from pivla.envs.rollout import episode_seed, iter_jobs, run_episode
+from pivla.io import atomic_write_json, read_json
 
 log = logging.getLogger(__name__)
 
@@ -194,6 +197,10 @@ def _write_libero_task(cfg: CollectConfig, spec: TaskSpec, episodes: list, attem
         "init_seeds": [e.meta["init_seed"] for e in episodes],
     }
     path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta)
+    partial = _partial_dir(cfg, spec.name)
+    shutil.rmtree(partial, ignore_errors=True)
+    with contextlib.suppress(OSError):  # gone with the last unfinished task
+        partial.parent.rmdir()
     log.info("%s: %d episodes (%d steps) -> %s; expert success %d/%d attempts", spec.name, len(episodes),
              sum(len(e) for e in episodes), path, n_success, attempts)
     if not cfg.keep_failures and len(episodes) < cfg.episodes:
@@ -203,28 +210,72 @@ def _write_libero_task(cfg: CollectConfig, spec: TaskSpec, episodes: list, attem
     return 0
 
 
+def _partial_dir(cfg: CollectConfig, task_name: str) -> Path:
+    """Where an unfinished LIBERO task keeps its episodes (hidden: not part of the dataset)."""
+    return Path(cfg.out) / ".partial" / task_name
+
+
+class _PartialTask:
+    """An unfinished LIBERO task's progress on disk: one file per kept episode and the attempt count, so an
+    interrupted collection continues from its next attempt (a task takes ~40 min of rendered episodes). Attempt
+    k's episode depends only on (seed, task, k), so a resumed task's file equals an uninterrupted one's."""
+
+    def __init__(self, cfg: CollectConfig, task: int, task_name: str):
+        self.dir = _partial_dir(cfg, task_name)
+        self.settings = {"suite": cfg.suite, "task": task, "seed": cfg.seed, "image_size": cfg.size,
+                         "init": cfg.libero_init, "noise": cfg.noise, "miss": cfg.miss,
+                         "keep_failures": cfg.keep_failures}
+
+    def load(self) -> tuple[list[Episode], list[int], int]:
+        """(episodes kept, their attempt numbers, attempts made) so far; nothing when the task has not started."""
+        path = self.dir / "progress.json"
+        if not path.exists():
+            return [], [], 0
+        progress = read_json(path)
+        if progress.get("settings") != self.settings:
+            raise ValueError(f"{self.dir}: an unfinished collection with other settings ({progress.get('settings')}, "
+                             f"now {self.settings}); delete that directory to start this task afresh")
+        kept = [read_episodes(self.dir / f"attempt_{k}.hdf5")[0] for k in progress["kept"]]
+        log.info("%s: resuming after %d attempts with %d episodes kept", self.dir.name, progress["attempts"], len(kept))
+        return kept, progress["kept"], progress["attempts"]
+
+    def record(self, attempt: int, episode: Episode | None, kept: list[int]) -> None:
+        """After attempt ``attempt``: its episode when kept (written first), then the progress that names it."""
+        if episode is not None:
+            write_episodes(self.dir / f"attempt_{attempt}.hdf5", [episode])
+        atomic_write_json(self.dir / "progress.json", {"settings": self.settings, "attempts": attempt + 1, "kept": kept})
+
+
 def _collect_libero_task(job: tuple[CollectConfig, int]) -> tuple[int, list, int]:
     """(task, episodes kept, attempts) for one LIBERO task; runs in a worker process when ``workers > 1``. Attempt
-    ``k`` plays the scene sampled with seed (seed, task, k), or official init state ``k`` (mod 50)."""
+    ``k`` plays the scene sampled with seed (seed, task, k), or official init state ``k`` (mod 50). Progress is
+    kept per episode, so an interrupted task resumes at its next attempt."""
     from pivla.envs import make_env
     from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
 
     cfg, task = job
     if not logging.getLogger().handlers:  # a spawned worker: its per-episode progress goes to the caller's log too
         logging.basicConfig(level=logging.INFO, format="%(message)s")
-    env = make_env("libero", cfg.suite, task, image_size=cfg.size, render=True, init_state=0, init=cfg.libero_init)
-    actor = RolloutExpert(cfg.suite, task, ExpertConfig(noise=cfg.noise, miss=cfg.miss))
+    (spec,) = select_tasks("libero", cfg.suite, str(task))
+    partial = _PartialTask(cfg, task, spec.name)
+    kept, kept_attempts, attempts = partial.load()
     wanted = cfg.episodes
     budget = wanted if cfg.keep_failures else 3 * wanted + 10
-    kept, attempts = [], 0
+    if len(kept) >= wanted or attempts >= budget:
+        return task, kept, attempts
+    env = make_env("libero", cfg.suite, task, image_size=cfg.size, render=True, init_state=0, init=cfg.libero_init)
+    actor = RolloutExpert(cfg.suite, task, ExpertConfig(noise=cfg.noise, miss=cfg.miss))
     try:
         while len(kept) < wanted and attempts < budget:
             ep = run_episode(env, actor, episode_seed(episode_seed(cfg.seed, task), attempts))
             ep.meta["init_state"] = env.init_state
             ep.meta["init_seed"] = env.init_seed
-            attempts += 1
-            if ep.success or cfg.keep_failures:
+            keep = ep.success or cfg.keep_failures
+            if keep:
                 kept.append(ep)
+                kept_attempts.append(attempts)
+            partial.record(attempts, ep if keep else None, kept_attempts)
+            attempts += 1
             log.info("%s task %d %s: %s in %d steps", cfg.suite, task,
                      f"init state {env.init_state}" if env.init_state is not None else f"scene seed {env.init_seed}",
                      "success" if ep.success else "failure", len(ep))

@@ -195,7 +195,6 @@ class Benchmark:
         atomic_write_json(self.out / "benchmark_config.json", dataclasses.asdict(cfg))
         path = self.out / "decisions.json"
         self.decisions = json.loads(path.read_text()) if path.exists() else {}
-        self._timed("collect", self.collect)
         self._ready("main")
         self._decide("hardest", self.choose_hardest)
         hardest = self.decisions["hardest"]["cell"]
@@ -230,26 +229,34 @@ class Benchmark:
             atomic_write_json(self.out / "decisions.json", self.decisions)
         log.info("[decision] %s: %s", name, {k: v for k, v in self.decisions[name].items() if k != "validation"})
 
-    def collect(self) -> None:
-        """Demonstrations (train seeds) for every policy's data, validation demonstrations (calibration's
-        fallback for a policy that never succeeds). A task's file holds its first N successful seeds, so each
-        smaller set of Fig. 17 is the first n episodes of the full one's files."""
-        cfg, data = self.cfg, self.out / "data"
+    def collect(self, name: str) -> None:
+        """A policy's demonstrations (train seeds) and the validation demonstrations of its first suite
+        (calibration's fallback for a policy that never succeeds), collected when the policy is first needed so
+        the headline trains before the other suites are collected. A task's file holds its first N successful
+        seeds, so each smaller set of Fig. 17 is the first n episodes of the full set's files."""
+        cfg, data, spec = self.cfg, self.out / "data", self.specs[name]
         base = CollectConfig(out="", episodes=cfg.train_episodes, seed_family="train", perturb="randomized_scene",
                              workers=cfg.workers, realism=cfg.realism, image_size=cfg.image_size, noise=cfg.noise,
                              miss=cfg.miss)
-        for suite in ("pick_place", "pick_place_seen", *OTHER_SUITES):
-            self._collect(dataclasses.replace(base, out=str(data / suite), suite=suite))
+        for suite in spec.data:
+            if suite in {f"pick_place_{n}" for n in cfg.demo_counts}:
+                self._collect(dataclasses.replace(base, out=str(data / "pick_place"), suite="pick_place"))
+                self._smaller_sets()
+            else:
+                self._collect(dataclasses.replace(base, out=str(data / suite), suite=suite))
+        val = dataclasses.replace(base, episodes=max(1, cfg.val_episodes // 2), seed_family="validation", perturb=None,
+                                  noise=0.0, miss=0.0)
+        self._collect(dataclasses.replace(val, out=str(data / "val" / spec.suites[0]), suite=spec.suites[0]))
+
+    def _smaller_sets(self) -> None:
+        """Fig. 17's sets: the first n episodes of each full pick_place file, one read per file for every n."""
+        data = self.out / "data"
         for src in sorted((data / "pick_place").glob("*_demo.hdf5")):
-            todo = [n for n in cfg.demo_counts if not (data / f"pick_place_{n}" / src.name).exists()]
-            if todo:  # one read of the full file for every smaller set
+            todo = [n for n in self.cfg.demo_counts if not (data / f"pick_place_{n}" / src.name).exists()]
+            if todo:
                 episodes, meta = read_episodes(src), {**read_env_meta(src), "first_of": str(src)}
                 for n in todo:
                     write_episodes(data / f"pick_place_{n}" / src.name, episodes[:n], meta)
-        val = dataclasses.replace(base, episodes=max(1, cfg.val_episodes // 2), seed_family="validation", perturb=None,
-                                  noise=0.0, miss=0.0)
-        for suite in ("pick_place", "pick_place_seen", *OTHER_SUITES):
-            self._collect(dataclasses.replace(val, out=str(data / "val" / suite), suite=suite))
 
     @staticmethod
     def _collect(cc: CollectConfig) -> None:
@@ -276,6 +283,7 @@ class Benchmark:
 
     def _ready(self, name: str) -> None:
         """Train every seed of a policy, run it on validation seeds and calibrate it on its own rollouts."""
+        self._timed("collect", lambda: self.collect(name))
         for seed in range(self.cfg.seeds):
             run = self.run_dir(name, seed)
             status = run / "status.json"
