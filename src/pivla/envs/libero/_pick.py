@@ -343,6 +343,12 @@ class PickPlace(Skill):
 
     # ---- grasp planning --------------------------------------------------------------------------------
 
+    def _plan(self) -> _Plan:
+        """The grasp, and a transfer height that the hand clears too."""
+        self.plan = self._plan_grasp()
+        self.plan.lift_z = max(self.plan.lift_z, self._hand_sweep_z())
+        return self.plan
+
     def _plan_grasp(self) -> _Plan:
         sc, cfg = self.scene, self.config
         centre, half, axes = sc.body_frame_extent(self.obj)
@@ -659,6 +665,30 @@ class PickPlace(Skill):
             top = max(t_hi[2], self._clear_height(start, (t_lo[:2] + t_hi[:2]) / 2, self.obj))
         return top + self.config.lift_clearance - lo[2]
 
+    def _hand_sweep_z(self) -> float:
+        """The lowest transfer height of the eef at which the hand (20 cm long along the closing axis, so it
+        reaches well past the held object's sides) passes over everything on its way from the grasp to the
+        release: a rim grasp on a bowl next to a cabinet otherwise carries the hand into the cabinet's side,
+        which tilts the gripper and throws the arm out to its elbow limit."""
+        sc, p, t = self.scene, self.plan, self.target
+        end = self._place_xy()
+        spot = t.spot if t.kind == "region" else None
+        if spot is not None and spot.outside is not None:
+            end = spot.outside[:2]
+        a = p.grasp[:2]
+        b = end - (sc.d.xpos[self.obj][:2] - a)  # the eef over the release, the object held as grasped
+        turn = spot.turn if spot is not None else 0.0
+        along = np.arange(-HAND_HALF_LENGTH, HAND_HALF_LENGTH + 1e-9, 0.01)
+        across = np.arange(-HAND_BACK, HAND_HALF_WIDTH + 1e-9, 0.01)
+        box = np.stack(np.meshgrid(along, across), -1).reshape(-1, 2)  # (closing axis, eef x) offsets
+        top = -np.inf
+        for f in np.linspace(0.0, 1.0, max(2, int(np.linalg.norm(b - a) / 0.01) + 1)):
+            yaw = p.yaw + f * turn
+            closing, forward = np.array([-np.sin(yaw), np.cos(yaw)]), np.array([np.cos(yaw), np.sin(yaw)])
+            for xy in a + f * (b - a) + box[:, :1] * closing + box[:, 1:] * forward:
+                top = max(top, sc.ray_down(xy, 2.0, {self.obj})[0])
+        return top + self.config.hand_clearance - (HAND_ABOVE_TIP - TIP_BELOW_EEF)
+
     def _outside(self, spot: _Spot, foot: np.ndarray) -> np.ndarray:
         """The object's origin where it goes down before coming in sideways: moved out along the way in until
         no part of its footprint is under anything (plus ``insert_standoff`` from an enclosure, 1 cm from a
@@ -698,7 +728,7 @@ class PickPlace(Skill):
         if self.target.kind == "region":
             self.target.spot = None  # planned again: the scene may have changed since the last attempt
         self.plan = None
-        self.plan = self._plan_grasp()
+        self.plan = self._plan()
         above = self.plan.grasp[2] + self.config.approach_above
         self.travel_z = max(above, self._clear_height(ee[:2], self.plan.grasp[:2], -1) + self.config.travel_clearance)
         self.start_xy = ee[:2].copy()  # the eef rises here first when it starts low
@@ -756,7 +786,7 @@ class PickPlace(Skill):
         """Plan the grasp again just before going down (objects may still be settling when the episode
         starts, e.g. a bowl sliding off a ramekin); True when the new grasp must be travelled to first, so
         that the gripper turns above the object rather than next to it."""
-        old, self.plan = self.plan, self._plan_grasp()
+        old, self.plan = self.plan, self._plan()
         # Yaws pi apart close the fingers along the same line: keep the one nearest the current target, or
         # a grasp across a square-ish object may flip and make the gripper turn half a circle going down.
         turn_by = (self.plan.yaw - old.yaw + np.pi / 2) % np.pi - np.pi / 2

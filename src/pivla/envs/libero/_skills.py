@@ -47,6 +47,7 @@ class ExpertConfig:
     min_pinch: float = 0.01  # a top grasp holds at least this much of the object between the fingers (m)
     floor_clearance: float = 0.006  # fingertips never lower than this above the surface under the object (m)
     lift_clearance: float = 0.06  # object bottom above the highest body on the way (m)
+    hand_clearance: float = 0.02  # the hand's underside above the highest body it passes over carrying (m)
     place_above: float = 0.015  # object bottom above the target's top at release, "on" goals (m)
     drop_above: float = 0.01  # object bottom above the container's rim at release, "in" goals (m)
     press_depth: float = 0.03  # below the release height, lowered further until a region goal holds (m)
