@@ -46,7 +46,7 @@ from pivla.envs.libero._geometry import (
     wrap,
     wrist_distance,
 )
-from pivla.envs.libero._skills import Command, ExpertConfig, PlanningError, Skill
+from pivla.envs.libero._skills import Command, ExpertConfig, PlanningError, Push, Skill
 
 # The wrist turns the gripper at most this far from neutral (the Panda's joint 7 allows about +-2.9 rad).
 MAX_YAW = 2.6
@@ -60,6 +60,7 @@ class _Plan:
     grasp: np.ndarray  # eef position at the grasp
     yaw: float
     lift_z: float  # eef height for the transfer
+    crowded_by: tuple[int, ...] = ()  # bodies standing where the open fingers must go down (no clear grasp)
 
 
 @dataclass
@@ -156,6 +157,7 @@ class PickPlace(Skill):
         """``share`` = (k, n): this is the k-th of n objects going to the same region (each gets its own part
         of it); ``miss``: execute the first grasp this far (xy, m) off the planned one (labels stay clean)."""
         super().__init__(scene, config)
+        self.obj_name = obj_name
         self.obj = scene.entity_root(obj_name)
         self.target = target
         self.share = share
@@ -164,6 +166,8 @@ class PickPlace(Skill):
         self.attempts = 0
         self.started = False
         self.plan: _Plan | None = None
+        self.making_room: Push | None = None  # pushing the object clear of what crowds its only grasp
+        self.room_made = False
 
     # ---- targets -------------------------------------------------------------------------------------
 
@@ -374,7 +378,10 @@ class PickPlace(Skill):
         grasp = np.array([centre[0], centre[1], tip_z + TIP_BELOW_EEF])
         plan = _Plan(grasp, closing_yaw(narrow), grasp[2] + self._lift_above_grasp())
         if self._fingers_blocked(grasp, plan.yaw, tip_z):
-            return self._plan_top(lo, hi, floor_z) or plan
+            top = self._plan_top(lo, hi, floor_z)
+            if top is not None:
+                return top
+            plan.crowded_by = self._crowding(grasp, plan.yaw, tip_z)
         return plan
 
     def _plan_chord(self, half: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> _Plan:
@@ -495,6 +502,40 @@ class PickPlace(Skill):
                     highest_under(grid_z, along, across, FINGER_UPPER, 0.0) - FINGER_TIP_HEIGHT)
         return under > tip_z
 
+    def _crowding(self, grasp: np.ndarray, yaw: float, tip_z: float) -> tuple[int, ...]:
+        """The bodies (the object aside) that stand where either open finger of this grasp goes down."""
+        sc, cl = self.scene, self.config.finger_clearance
+        grid_xy, _ = self._heightmap(grasp[:2], FINGER_UPPER[1] + 0.01, tip_z + 0.15)
+        closing = np.array([-np.sin(yaw), np.cos(yaw)])
+        rel = grid_xy - grasp[:2]
+        along, across = np.abs(rel @ closing), np.abs(rel @ np.array([closing[1], -closing[0]]))
+        under = (along > FINGER_TIP[0] - cl) & (along < FINGER_UPPER[1] + cl) & (across < FINGER_UPPER[2] + cl)
+        hits = [sc.ray_down(xy, tip_z + 0.15) for xy in grid_xy[under]]
+        return tuple(sorted({root for z, root in hits if root not in (self.obj, -1) and z > tip_z}))
+
+    def _make_room(self) -> bool:
+        """Start pushing the object clear when the new plan's grasp is crowded (once per skill: the grasp is
+        planned again after the push)."""
+        if self.plan.crowded_by and not self.room_made:
+            self.room_made = True
+            self.making_room = self._room_push(self.plan.crowded_by)
+        return self.making_room is not None
+
+    def _room_push(self, crowd: tuple[int, ...]) -> Push:
+        """A push of the object along its long side, just far enough that the fingers of a grasp across its
+        narrow side come down past the end of ``crowd`` (a flat box lying beside a tall carton: the wider upper
+        part of a finger lands on the carton), towards whichever end needs the shorter push. The fingers push
+        in line, the hand along the push, between the object and the crowd beside it."""
+        sc, cl = self.scene, self.config.finger_clearance
+        centre, half, axes = sc.body_frame_extent(self.obj)
+        along = axes[int(np.argmax(half[:2]))][:2]
+        along = along / np.linalg.norm(along)
+        pts = np.concatenate([sc.corners(sc.geoms(b)) for b in crowd])[:, :2] @ along
+        here = float(centre[:2] @ along)
+        clear = FINGER_UPPER[2] + 2 * cl
+        shift = min(float(pts.max()) + clear - here, float(pts.min()) - clear - here, key=abs)
+        return Push(sc, self.config, self.obj, centre[:2] + along * shift, inline=True)
+
     def _plan_top(self, lo: np.ndarray, hi: np.ndarray, floor_z: float) -> _Plan | None:
         """A top grasp where both fingers can go down beside some part of the object that stands between them
         (deepest pinch first, then nearest the object's centre, the hand clear of what stands around); None
@@ -503,11 +544,11 @@ class PickPlace(Skill):
         origin = sc.d.xpos[self.obj][:2]
         span = float(np.max(hi[:2] - lo[:2])) / 2
         grid_xy, grid_z = self._heightmap((lo[:2] + hi[:2]) / 2, span + FINGER_UPPER[1] + cfg.finger_clearance,
-                                          hi[2] + 0.1)
-        roots = np.array([sc.ray_down(xy, hi[2] + 0.1)[1] for xy in grid_xy])
+                                          hi[2] + 0.15)
+        roots = np.array([sc.ray_down(xy, hi[2] + 0.15)[1] for xy in grid_xy])
         over_xy, over_z = self._heightmap((lo[:2] + hi[:2]) / 2, span + HAND_HALF_LENGTH, 2.0, 2 * RAY_SPACING)
         best: tuple[float, _Plan] | None = None
-        centres = grid_xy[(roots == self.obj)][::2]
+        centres = grid_xy[(roots == self.obj)]
         for c in centres:
             for yaw in np.linspace(-np.pi / 2, np.pi / 2, 12, endpoint=False):
                 closing = np.array([-np.sin(yaw), np.cos(yaw)])
@@ -724,11 +765,13 @@ class PickPlace(Skill):
     # ---- acting ---------------------------------------------------------------------------------------
 
     def _start_attempt(self, ee: np.ndarray) -> None:
-        self.attempts += 1
         if self.target.kind == "region":
             self.target.spot = None  # planned again: the scene may have changed since the last attempt
         self.plan = None
         self.plan = self._plan()
+        if self._make_room():
+            return
+        self.attempts += 1
         above = self.plan.grasp[2] + self.config.approach_above
         self.travel_z = max(above, self._clear_height(ee[:2], self.plan.grasp[:2], -1) + self.config.travel_clearance)
         self.start_xy = ee[:2].copy()  # the eef rises here first when it starts low
@@ -755,12 +798,23 @@ class PickPlace(Skill):
             ref = (lowest + levelling(sc.d.xmat[self.obj].reshape(3, 3)) @ (sc.d.xpos[self.obj] - lowest))[:2]
         return np.array([*ref, lowest[2]]) - ee
 
+    @property
+    def precise(self) -> bool:
+        return self.making_room.precise if self.making_room is not None else super().precise
+
     def step(self, ee: np.ndarray, rot: np.ndarray) -> Command | None:
         if not self.started:
             self.started = True
             self._start_attempt(ee)
         cfg = self.config
         while self.phase < len(self.PHASES):
+            if self.making_room is not None:
+                command = self.making_room.step(ee, rot)
+                if command is not None:
+                    return command
+                self.making_room = None
+                self._start_attempt(ee)
+                continue
             phase = self.PHASES[self.phase]
             command, finished = self._goal(phase, ee, rot)
             if not finished:
@@ -787,6 +841,8 @@ class PickPlace(Skill):
         starts, e.g. a bowl sliding off a ramekin); True when the new grasp must be travelled to first, so
         that the gripper turns above the object rather than next to it."""
         old, self.plan = self.plan, self._plan()
+        if self._make_room():
+            return True
         # Yaws pi apart close the fingers along the same line: keep the one nearest the current target, or
         # a grasp across a square-ish object may flip and make the gripper turn half a circle going down.
         turn_by = (self.plan.yaw - old.yaw + np.pi / 2) % np.pi - np.pi / 2
