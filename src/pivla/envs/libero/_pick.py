@@ -521,11 +521,12 @@ class PickPlace(Skill):
             self.making_room = self._room_push(self.plan.crowded_by)
         return self.making_room is not None
 
-    def _room_push(self, crowd: tuple[int, ...]) -> Push:
+    def _room_push(self, crowd: tuple[int, ...]) -> Push | None:
         """A push of the object along its long side, just far enough that the fingers of a grasp across its
         narrow side come down past the end of ``crowd`` (a flat box lying beside a tall carton: the wider upper
-        part of a finger lands on the carton), towards whichever end needs the shorter push. The fingers push
-        in line, the hand along the push, between the object and the crowd beside it."""
+        part of a finger lands on the carton), towards whichever end needs the shorter push of those where the
+        pushing hand fits; None when it fits at neither. The fingers push in line, the hand along the push,
+        between the object and the crowd beside it."""
         sc, cl = self.scene, self.config.finger_clearance
         centre, half, axes = sc.body_frame_extent(self.obj)
         along = axes[int(np.argmax(half[:2]))][:2]
@@ -533,8 +534,47 @@ class PickPlace(Skill):
         pts = np.concatenate([sc.corners(sc.geoms(b)) for b in crowd])[:, :2] @ along
         here = float(centre[:2] @ along)
         clear = FINGER_UPPER[2] + 2 * cl
-        shift = min(float(pts.max()) + clear - here, float(pts.min()) - clear - here, key=abs)
-        return Push(sc, self.config, self.obj, centre[:2] + along * shift, inline=True)
+        shifts = sorted((float(pts.max()) + clear - here, float(pts.min()) - clear - here), key=abs)
+        for shift in shifts:
+            u = along * np.sign(shift)
+            if self._pushing_hand_fits(u) and self._way_free(along * shift):
+                return Push(sc, self.config, self.obj, centre[:2] + along * shift, inline=True)
+        return None
+
+    def _way_free(self, move: np.ndarray) -> bool:
+        """Whether the object's footprint, slid by ``move`` (xy) along the table, meets nothing on the way."""
+        sc = self.scene
+        lo, hi = sc.aabb(self.obj)
+        pts = sc.corners(sc.geoms(self.obj))[:, :2]
+        ticks = [np.arange(pts[:, k].min(), pts[:, k].max() + 1e-9, 0.01) for k in (0, 1)]
+        foot = np.stack(np.meshgrid(*ticks), -1).reshape(-1, 2)
+        foot = foot[[sc.ray_down(xy, hi[2] + 0.01)[1] == self.obj for xy in foot]]
+        for f in np.linspace(0.0, 1.0, max(2, int(np.linalg.norm(move) / 0.01) + 1))[1:]:
+            if any(sc.ray_down(xy, hi[2] + 0.3, {self.obj})[0] > lo[2] + 0.005 for xy in foot + f * move):
+                return False
+        return True
+
+    def _pushing_hand_fits(self, u: np.ndarray) -> bool:
+        """Whether the closed fingers, in line along ``u`` at a third of the object's height, and the hand above
+        them fit behind the object's trailing end: nothing there reaches above the fingertips (within the
+        fingers' footprint) or above the hand's underside (within its 20 x 8 cm)."""
+        sc, cl = self.scene, self.config.finger_clearance
+        lo, hi = sc.aabb(self.obj)
+        pts = sc.corners(sc.geoms(self.obj))[:, :2]
+        mid = (pts.min(0) + pts.max(0)) / 2
+        front = FINGER_TIP[1] - FINGER_TIP[0]
+        eef = mid + u * (float(np.min((pts - mid) @ u)) - front - 0.02)
+        tip_z = lo[2] + max(self.config.floor_clearance, 0.35 * (hi[2] - lo[2]))  # as Push(inline=True)
+        grid_xy, _ = self._heightmap(eef, HAND_HALF_LENGTH, hi[2] + 0.3, 2 * RAY_SPACING)
+        rel = grid_xy - eef
+        a, c = np.abs(rel @ u), np.abs(rel @ np.array([-u[1], u[0]]))
+        hand = (a < HAND_HALF_LENGTH) & (c < HAND_HALF_WIDTH)
+        fingers = (a < front + cl) & (c < FINGER_TIP[2] + cl)
+        for xy, in_hand, in_fingers in zip(grid_xy[hand], hand[hand], fingers[hand]):
+            z, root = sc.ray_down(xy, hi[2] + 0.3, {self.obj})
+            if z > tip_z + HAND_ABOVE_TIP - cl or (in_fingers and z > tip_z - cl):
+                return False
+        return True
 
     def _plan_top(self, lo: np.ndarray, hi: np.ndarray, floor_z: float) -> _Plan | None:
         """A top grasp where both fingers can go down beside some part of the object that stands between them

@@ -291,7 +291,9 @@ class Push(Skill):
         self.goal_xy = np.asarray(goal_xy, dtype=np.float64)
         lo, hi = scene.aabb(obj)
         self.top = float(hi[2])
-        self.tip_z = lo[2] + max(0.012, 0.35 * (hi[2] - lo[2]))
+        # a third of the way up; in line (a flat box), as low as the floor clearance allows: higher, the single
+        # fingertip rides up over a 2-cm box instead of pushing it
+        self.tip_z = lo[2] + max(config.floor_clearance if inline else 0.012, 0.35 * (hi[2] - lo[2]))
         self.start = self._centre()
         to_goal = self.goal_xy - self.start
         self.distance = float(np.linalg.norm(to_goal))
