@@ -46,7 +46,7 @@ from pivla.envs.libero._geometry import (
     wrap,
     wrist_distance,
 )
-from pivla.envs.libero._skills import Command, ExpertConfig, PlanningError, Push, Skill
+from pivla.envs.libero._skills import Command, ExpertConfig, PlanningError, Skill
 
 # The wrist turns the gripper at most this far from neutral (the Panda's joint 7 allows about +-2.9 rad).
 MAX_YAW = 2.6
@@ -60,7 +60,6 @@ class _Plan:
     grasp: np.ndarray  # eef position at the grasp
     yaw: float
     lift_z: float  # eef height for the transfer
-    crowded_by: tuple[int, ...] = ()  # bodies standing where the open fingers must go down (no clear grasp)
 
 
 @dataclass
@@ -157,7 +156,6 @@ class PickPlace(Skill):
         """``share`` = (k, n): this is the k-th of n objects going to the same region (each gets its own part
         of it); ``miss``: execute the first grasp this far (xy, m) off the planned one (labels stay clean)."""
         super().__init__(scene, config)
-        self.obj_name = obj_name
         self.obj = scene.entity_root(obj_name)
         self.target = target
         self.share = share
@@ -166,8 +164,6 @@ class PickPlace(Skill):
         self.attempts = 0
         self.started = False
         self.plan: _Plan | None = None
-        self.making_room: Push | None = None  # pushing the object clear of what crowds its only grasp
-        self.room_made = False
 
     # ---- targets -------------------------------------------------------------------------------------
 
@@ -378,10 +374,7 @@ class PickPlace(Skill):
         grasp = np.array([centre[0], centre[1], tip_z + TIP_BELOW_EEF])
         plan = _Plan(grasp, closing_yaw(narrow), grasp[2] + self._lift_above_grasp())
         if self._fingers_blocked(grasp, plan.yaw, tip_z):
-            top = self._plan_top(lo, hi, floor_z)
-            if top is not None:
-                return top
-            plan.crowded_by = self._crowding(grasp, plan.yaw, tip_z)
+            return self._plan_top(lo, hi, floor_z) or plan
         return plan
 
     def _plan_chord(self, half: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> _Plan:
@@ -502,80 +495,6 @@ class PickPlace(Skill):
                     highest_under(grid_z, along, across, FINGER_UPPER, 0.0) - FINGER_TIP_HEIGHT)
         return under > tip_z
 
-    def _crowding(self, grasp: np.ndarray, yaw: float, tip_z: float) -> tuple[int, ...]:
-        """The bodies (the object aside) that stand where either open finger of this grasp goes down."""
-        sc, cl = self.scene, self.config.finger_clearance
-        grid_xy, _ = self._heightmap(grasp[:2], FINGER_UPPER[1] + 0.01, tip_z + 0.15)
-        closing = np.array([-np.sin(yaw), np.cos(yaw)])
-        rel = grid_xy - grasp[:2]
-        along, across = np.abs(rel @ closing), np.abs(rel @ np.array([closing[1], -closing[0]]))
-        under = (along > FINGER_TIP[0] - cl) & (along < FINGER_UPPER[1] + cl) & (across < FINGER_UPPER[2] + cl)
-        hits = [sc.ray_down(xy, tip_z + 0.15) for xy in grid_xy[under]]
-        return tuple(sorted({root for z, root in hits if root not in (self.obj, -1) and z > tip_z}))
-
-    def _make_room(self) -> bool:
-        """Start pushing the object clear when the new plan's grasp is crowded (once per skill: the grasp is
-        planned again after the push)."""
-        if self.plan.crowded_by and not self.room_made:
-            self.room_made = True
-            self.making_room = self._room_push(self.plan.crowded_by)
-        return self.making_room is not None
-
-    def _room_push(self, crowd: tuple[int, ...]) -> Push | None:
-        """A push of the object along its long side, just far enough that the fingers of a grasp across its
-        narrow side come down past the end of ``crowd`` (a flat box lying beside a tall carton: the wider upper
-        part of a finger lands on the carton), towards whichever end needs the shorter push of those where the
-        pushing hand fits; None when it fits at neither. The fingers push in line, the hand along the push,
-        between the object and the crowd beside it."""
-        sc, cl = self.scene, self.config.finger_clearance
-        centre, half, axes = sc.body_frame_extent(self.obj)
-        along = axes[int(np.argmax(half[:2]))][:2]
-        along = along / np.linalg.norm(along)
-        pts = np.concatenate([sc.corners(sc.geoms(b)) for b in crowd])[:, :2] @ along
-        here = float(centre[:2] @ along)
-        clear = FINGER_UPPER[2] + 2 * cl
-        shifts = sorted((float(pts.max()) + clear - here, float(pts.min()) - clear - here), key=abs)
-        for shift in shifts:
-            u = along * np.sign(shift)
-            if self._pushing_hand_fits(u) and self._way_free(along * shift):
-                return Push(sc, self.config, self.obj, centre[:2] + along * shift, inline=True)
-        return None
-
-    def _way_free(self, move: np.ndarray) -> bool:
-        """Whether the object's footprint, slid by ``move`` (xy) along the table, meets nothing on the way."""
-        sc = self.scene
-        lo, hi = sc.aabb(self.obj)
-        pts = sc.corners(sc.geoms(self.obj))[:, :2]
-        ticks = [np.arange(pts[:, k].min(), pts[:, k].max() + 1e-9, 0.01) for k in (0, 1)]
-        foot = np.stack(np.meshgrid(*ticks), -1).reshape(-1, 2)
-        foot = foot[[sc.ray_down(xy, hi[2] + 0.01)[1] == self.obj for xy in foot]]
-        for f in np.linspace(0.0, 1.0, max(2, int(np.linalg.norm(move) / 0.01) + 1))[1:]:
-            if any(sc.ray_down(xy, hi[2] + 0.3, {self.obj})[0] > lo[2] + 0.005 for xy in foot + f * move):
-                return False
-        return True
-
-    def _pushing_hand_fits(self, u: np.ndarray) -> bool:
-        """Whether the closed fingers, in line along ``u`` at a third of the object's height, and the hand above
-        them fit behind the object's trailing end: nothing there reaches above the fingertips (within the
-        fingers' footprint) or above the hand's underside (within its 20 x 8 cm)."""
-        sc, cl = self.scene, self.config.finger_clearance
-        lo, hi = sc.aabb(self.obj)
-        pts = sc.corners(sc.geoms(self.obj))[:, :2]
-        mid = (pts.min(0) + pts.max(0)) / 2
-        front = FINGER_TIP[1] - FINGER_TIP[0]
-        eef = mid + u * (float(np.min((pts - mid) @ u)) - front - 0.02)
-        tip_z = lo[2] + max(self.config.floor_clearance, 0.35 * (hi[2] - lo[2]))  # as Push(inline=True)
-        grid_xy, _ = self._heightmap(eef, HAND_HALF_LENGTH, hi[2] + 0.3, 2 * RAY_SPACING)
-        rel = grid_xy - eef
-        a, c = np.abs(rel @ u), np.abs(rel @ np.array([-u[1], u[0]]))
-        hand = (a < HAND_HALF_LENGTH) & (c < HAND_HALF_WIDTH)
-        fingers = (a < front + cl) & (c < FINGER_TIP[2] + cl)
-        for xy, in_hand, in_fingers in zip(grid_xy[hand], hand[hand], fingers[hand]):
-            z, root = sc.ray_down(xy, hi[2] + 0.3, {self.obj})
-            if z > tip_z + HAND_ABOVE_TIP - cl or (in_fingers and z > tip_z - cl):
-                return False
-        return True
-
     def _plan_top(self, lo: np.ndarray, hi: np.ndarray, floor_z: float) -> _Plan | None:
         """A top grasp where both fingers can go down beside some part of the object that stands between them
         (deepest pinch first, then nearest the object's centre, the hand clear of what stands around); None
@@ -584,11 +503,11 @@ class PickPlace(Skill):
         origin = sc.d.xpos[self.obj][:2]
         span = float(np.max(hi[:2] - lo[:2])) / 2
         grid_xy, grid_z = self._heightmap((lo[:2] + hi[:2]) / 2, span + FINGER_UPPER[1] + cfg.finger_clearance,
-                                          hi[2] + 0.15)
-        roots = np.array([sc.ray_down(xy, hi[2] + 0.15)[1] for xy in grid_xy])
+                                          hi[2] + 0.1)
+        roots = np.array([sc.ray_down(xy, hi[2] + 0.1)[1] for xy in grid_xy])
         over_xy, over_z = self._heightmap((lo[:2] + hi[:2]) / 2, span + HAND_HALF_LENGTH, 2.0, 2 * RAY_SPACING)
         best: tuple[float, _Plan] | None = None
-        centres = grid_xy[(roots == self.obj)]
+        centres = grid_xy[(roots == self.obj)][::2]
         for c in centres:
             for yaw in np.linspace(-np.pi / 2, np.pi / 2, 12, endpoint=False):
                 closing = np.array([-np.sin(yaw), np.cos(yaw)])
@@ -805,13 +724,11 @@ class PickPlace(Skill):
     # ---- acting ---------------------------------------------------------------------------------------
 
     def _start_attempt(self, ee: np.ndarray) -> None:
+        self.attempts += 1
         if self.target.kind == "region":
             self.target.spot = None  # planned again: the scene may have changed since the last attempt
         self.plan = None
         self.plan = self._plan()
-        if self._make_room():
-            return
-        self.attempts += 1
         above = self.plan.grasp[2] + self.config.approach_above
         self.travel_z = max(above, self._clear_height(ee[:2], self.plan.grasp[:2], -1) + self.config.travel_clearance)
         self.start_xy = ee[:2].copy()  # the eef rises here first when it starts low
@@ -838,23 +755,12 @@ class PickPlace(Skill):
             ref = (lowest + levelling(sc.d.xmat[self.obj].reshape(3, 3)) @ (sc.d.xpos[self.obj] - lowest))[:2]
         return np.array([*ref, lowest[2]]) - ee
 
-    @property
-    def precise(self) -> bool:
-        return self.making_room.precise if self.making_room is not None else super().precise
-
     def step(self, ee: np.ndarray, rot: np.ndarray) -> Command | None:
         if not self.started:
             self.started = True
             self._start_attempt(ee)
         cfg = self.config
         while self.phase < len(self.PHASES):
-            if self.making_room is not None:
-                command = self.making_room.step(ee, rot)
-                if command is not None:
-                    return command
-                self.making_room = None
-                self._start_attempt(ee)
-                continue
             phase = self.PHASES[self.phase]
             command, finished = self._goal(phase, ee, rot)
             if not finished:
@@ -881,8 +787,6 @@ class PickPlace(Skill):
         starts, e.g. a bowl sliding off a ramekin); True when the new grasp must be travelled to first, so
         that the gripper turns above the object rather than next to it."""
         old, self.plan = self.plan, self._plan()
-        if self._make_room():
-            return True
         # Yaws pi apart close the fingers along the same line: keep the one nearest the current target, or
         # a grasp across a square-ish object may flip and make the gripper turn half a circle going down.
         turn_by = (self.plan.yaw - old.yaw + np.pi / 2) % np.pi - np.pi / 2

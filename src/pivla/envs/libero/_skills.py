@@ -277,32 +277,26 @@ class Drawer(Skill):
 
 class Push(Skill):
     """Slide an object along the table to a point by pushing it from behind with the closed fingertips, a third
-    of its height up its side, the gripper pointing down with the fingers side by side across the push (or,
-    ``inline``, one behind the other, so that the 20-cm hand lies along the push and fits between the object
-    and a neighbour beside it), correcting the line as it goes (half the sideways drift each step): faster than
-    picking up an object that only has to make room."""
+    of its height up its side, the gripper pointing down with the fingers side by side across the push,
+    correcting the line as it goes (half the sideways drift each step): faster than picking up an object that
+    only has to make room."""
 
     PHASES = ("approach", "lower", "push", "rise")
     PRECISE = frozenset({"lower", "push"})
 
-    def __init__(self, scene: Scene, config: ExpertConfig, obj: int, goal_xy: np.ndarray, inline: bool = False) -> None:
+    def __init__(self, scene: Scene, config: ExpertConfig, obj: int, goal_xy: np.ndarray) -> None:
         super().__init__(scene, config)
         self.obj = obj
         self.goal_xy = np.asarray(goal_xy, dtype=np.float64)
         lo, hi = scene.aabb(obj)
         self.top = float(hi[2])
-        # a third of the way up; in line (a flat box), as low as the floor clearance allows: higher, the single
-        # fingertip rides up over a 2-cm box instead of pushing it
-        self.tip_z = lo[2] + max(config.floor_clearance if inline else 0.012, 0.35 * (hi[2] - lo[2]))
+        self.tip_z = lo[2] + max(0.012, 0.35 * (hi[2] - lo[2]))
         self.start = self._centre()
         to_goal = self.goal_xy - self.start
         self.distance = float(np.linalg.norm(to_goal))
         self.u = to_goal / max(self.distance, 1e-9)
-        # Of the two yaws with the fingers across (or along) the push, the one nearer neutral.
-        across = float(np.arctan2(self.u[1], self.u[0]))
-        self.rot = gripper_rotation(wrap(across + np.pi / 2 if inline else across, np.pi))
-        # the closed fingers' front: half a finger's thickness, or (in line) its outer face, from the eef
-        self.front = FINGER_TIP[1] - FINGER_TIP[0] if inline else FINGER_TIP[2]
+        # Of the two yaws with the fingers across the push, the one nearer neutral.
+        self.rot = gripper_rotation(wrap(float(np.arctan2(self.u[1], self.u[0])), np.pi))
 
     def _centre(self) -> np.ndarray:
         lo, hi = self.scene.aabb(self.obj)
@@ -317,7 +311,7 @@ class Push(Skill):
         lateral = np.array([-self.u[1], self.u[0]])
         on_line = self.start + self.u * float((centre - self.start) @ self.u)
         drift = float((centre - on_line) @ lateral)
-        return centre + self.u * (back - self.front + lead) - lateral * 0.5 * drift
+        return centre + self.u * (back - FINGER_TIP[2] + lead) - lateral * 0.5 * drift
 
     def _goal(self, phase: str, ee: np.ndarray, rot: np.ndarray) -> tuple[Command, bool]:
         z = self.tip_z + TIP_BELOW_EEF
