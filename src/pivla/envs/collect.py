@@ -243,7 +243,8 @@ class _PartialTask:
         """After attempt ``attempt``: its episode when kept (written first), then the progress that names it."""
         if episode is not None:
             write_episodes(self.dir / f"attempt_{attempt}.hdf5", [episode])
-        atomic_write_json(self.dir / "progress.json", {"settings": self.settings, "attempts": attempt + 1, "kept": kept})
+        atomic_write_json(self.dir / "progress.json",
+                          {"settings": self.settings, "attempts": attempt + 1, "kept": kept})
 
 
 def _collect_libero_task(job: tuple[CollectConfig, int]) -> tuple[int, list, int]:
