@@ -169,14 +169,13 @@ def _collect_libero(cfg: CollectConfig) -> int:
         expert_actor(cfg.suite, spec.index)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(cfg, spec.index) for spec in specs]
-    by_index = {spec.index: spec for spec in specs}
+    jobs = [(cfg, spec) for spec in specs]
     if cfg.workers > 1 and len(jobs) > 1:
         with mp.get_context("spawn").Pool(min(cfg.workers, len(jobs))) as pool:
             # Each task's file is written as soon as that task finishes, so an interruption keeps it.
-            return max([_write_libero_task(cfg, by_index[task], episodes, attempts)
-                        for task, episodes, attempts in pool.imap_unordered(_collect_libero_task, jobs)])
-    return max([_write_libero_task(cfg, spec, *_collect_libero_task(job)[1:]) for spec, job in zip(specs, jobs)])
+            return max([_write_libero_task(cfg, spec, episodes, attempts)
+                        for spec, episodes, attempts in pool.imap_unordered(_collect_libero_task, jobs)])
+    return max([_write_libero_task(cfg, *_collect_libero_task(job)) for job in jobs])
 
 
 def _write_libero_task(cfg: CollectConfig, spec: TaskSpec, episodes: list, attempts: int) -> int:
@@ -247,23 +246,23 @@ class _PartialTask:
                           {"settings": self.settings, "attempts": attempt + 1, "kept": kept})
 
 
-def _collect_libero_task(job: tuple[CollectConfig, int]) -> tuple[int, list, int]:
+def _collect_libero_task(job: tuple[CollectConfig, TaskSpec]) -> tuple[TaskSpec, list, int]:
     """(task, episodes kept, attempts) for one LIBERO task; runs in a worker process when ``workers > 1``. Attempt
     ``k`` plays the scene sampled with seed (seed, task, k), or official init state ``k`` (mod 50). Progress is
     kept per episode, so an interrupted task resumes at its next attempt."""
     from pivla.envs import make_env
     from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
 
-    cfg, task = job
+    cfg, spec = job
+    task = spec.index
     if not logging.getLogger().handlers:  # a spawned worker: its per-episode progress goes to the caller's log too
         logging.basicConfig(level=logging.INFO, format="%(message)s")
-    (spec,) = select_tasks("libero", cfg.suite, str(task))
     partial = _PartialTask(cfg, task, spec.name)
     kept, kept_attempts, attempts = partial.load()
     wanted = cfg.episodes
     budget = wanted if cfg.keep_failures else 3 * wanted + 10
     if len(kept) >= wanted or attempts >= budget:
-        return task, kept, attempts
+        return spec, kept, attempts
     env = make_env("libero", cfg.suite, task, image_size=cfg.size, render=True, init_state=0, init=cfg.libero_init)
     actor = RolloutExpert(cfg.suite, task, ExpertConfig(noise=cfg.noise, miss=cfg.miss))
     try:
@@ -282,4 +281,4 @@ def _collect_libero_task(job: tuple[CollectConfig, int]) -> tuple[int, list, int
                      "success" if ep.success else "failure", len(ep))
     finally:
         env.close()
-    return task, kept, attempts
+    return spec, kept, attempts

@@ -345,9 +345,9 @@ class PickPlace(Skill):
 
     def _plan(self) -> _Plan:
         """The grasp, and a transfer height that the hand clears too."""
-        self.plan = self._plan_grasp()
-        self.plan.lift_z = max(self.plan.lift_z, self._hand_sweep_z())
-        return self.plan
+        plan = self._plan_grasp()
+        plan.lift_z = max(plan.lift_z, self._hand_sweep_z(plan))
+        return plan
 
     def _plan_grasp(self) -> _Plan:
         sc, cfg = self.scene, self.config
@@ -665,12 +665,12 @@ class PickPlace(Skill):
             top = max(t_hi[2], self._clear_height(start, (t_lo[:2] + t_hi[:2]) / 2, self.obj))
         return top + self.config.lift_clearance - lo[2]
 
-    def _hand_sweep_z(self) -> float:
+    def _hand_sweep_z(self, p: _Plan) -> float:
         """The lowest transfer height of the eef at which the hand (20 cm long along the closing axis, so it
         reaches well past the held object's sides) passes over everything on its way from the grasp to the
         release: a rim grasp on a bowl next to a cabinet otherwise carries the hand into the cabinet's side,
         which tilts the gripper and throws the arm out to its elbow limit."""
-        sc, p, t = self.scene, self.plan, self.target
+        sc, t = self.scene, self.target
         end = self._place_xy()
         spot = t.spot if t.kind == "region" else None
         if spot is not None and spot.outside is not None:
