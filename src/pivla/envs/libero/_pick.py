@@ -60,6 +60,7 @@ class _Plan:
     grasp: np.ndarray  # eef position at the grasp
     yaw: float
     lift_z: float  # eef height for the transfer
+    close_below: float = 0.0  # while the fingers close, the eef is held this far (m) below the grasp
 
 
 @dataclass
@@ -413,7 +414,7 @@ class PickPlace(Skill):
             if any(np.linalg.norm(grasp[:2] - f) < cfg.retry_distance for f in self.failed):
                 score -= 0.5
             if best is None or score > best[0]:
-                best = (score, _Plan(grasp, yaw, grasp[2] + lift_above))
+                best = (score, _Plan(grasp, yaw, grasp[2] + lift_above, cfg.chord_close_below))
         if best is None:
             raise PlanningError(f"no chord of {sc.body_name(self.obj)!r} is clear for the fingers")
         return best[1]
@@ -870,6 +871,8 @@ class PickPlace(Skill):
                 return Command(reach(p.grasp), target_rot, -1.0, ee.copy(), 1.0), self.phase_steps >= steps
             if phase == "open" and self.phase_steps == 0:
                 self.release_ee = ee.copy()
+            if phase == "close" and p.close_below:
+                return Command(reach(p.grasp - [0.0, 0.0, p.close_below]), target_rot, grip), self.phase_steps >= steps
             return Command(None, None, grip), self.phase_steps >= steps
         if phase == "slide":
             if self.slide is None:

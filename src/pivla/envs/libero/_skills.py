@@ -44,6 +44,8 @@ class ExpertConfig:
     overhang_margin: float = 0.01  # a held object slides this far (m) past anything above it before lifting
     drop_distance: float = 0.05  # the held object moved this far (m) from the eef while carried: dropped, retry
     top_depth: float = 0.03  # fingertips below the object's top for a top grasp (m)
+    chord_close_below: float = 0.006  # a plate's chord grasp holds the eef this far (m) below the grasp while the
+    # fingers close: unpressed, they ride up the sloping lip onto its top and close on nothing
     min_pinch: float = 0.01  # a top grasp holds at least this much of the object between the fingers (m)
     floor_clearance: float = 0.006  # fingertips never lower than this above the surface under the object (m)
     lift_clearance: float = 0.06  # object bottom above the highest body on the way (m)
