@@ -144,15 +144,6 @@ class Target:
         return True if self.exclude is not None else self.scene.holds(self.goal)
 
 
-class Crowded(PlanningError):
-    """The only grasp of an object, tried and failed, has a movable neighbour where the open fingers or the hand
-    go down: it is to be moved out of the xy box ``lo``-``hi`` first."""
-
-    def __init__(self, blocker: int, lo: np.ndarray, hi: np.ndarray, message: str) -> None:
-        super().__init__(message)
-        self.blocker, self.lo, self.hi = blocker, lo, hi
-
-
 class PickPlace(Skill):
     """Pick an object and put it on / in a target; plans the grasp again once above the object (objects may
     still be settling), and retries the grasp (up to ``max_attempts``) when the object did not come up."""
@@ -162,18 +153,14 @@ class PickPlace(Skill):
     PRECISE = frozenset({"descend", "close", "slide", "insert", "place", "press", "open", "withdraw"})
 
     def __init__(self, scene: Scene, config: ExpertConfig, obj_name: str, target: Target,
-                 share: tuple[int, int] = (0, 1), miss: np.ndarray | None = None,
-                 movable: frozenset[int] = frozenset()) -> None:
+                 share: tuple[int, int] = (0, 1), miss: np.ndarray | None = None) -> None:
         """``share`` = (k, n): this is the k-th of n objects going to the same region (each gets its own part
-        of it); ``miss``: execute the first grasp this far (xy, m) off the planned one (labels stay clean);
-        ``movable``: neighbours (top-level bodies) that may be pushed aside when they crowd the only grasp
-        (planning raises :class:`Crowded`)."""
+        of it); ``miss``: execute the first grasp this far (xy, m) off the planned one (labels stay clean)."""
         super().__init__(scene, config)
         self.obj = scene.entity_root(obj_name)
         self.target = target
         self.share = share
         self.miss = miss
-        self.movable = movable
         self.failed: list[np.ndarray] = []  # xy of grasps that did not lift the object
         self.attempts = 0
         self.started = False
@@ -388,38 +375,8 @@ class PickPlace(Skill):
         grasp = np.array([centre[0], centre[1], tip_z + TIP_BELOW_EEF])
         plan = _Plan(grasp, closing_yaw(narrow), grasp[2] + self._lift_above_grasp())
         if self._fingers_blocked(grasp, plan.yaw, tip_z):
-            top = self._plan_top(lo, hi, floor_z)
-            if top is not None:
-                return top
-            if len(self.failed) >= self.config.max_attempts - 1:  # the blocked grasp often works anyway (the
-                # check is strict) or on a second try: a neighbour is pushed aside only before the last one
-                self._raise_if_crowded(grasp, plan.yaw, tip_z)
+            return self._plan_top(lo, hi, floor_z) or plan
         return plan
-
-    def _raise_if_crowded(self, grasp: np.ndarray, yaw: float, tip_z: float) -> None:
-        """Raise :class:`Crowded` for the first movable neighbour that stands, above the fingertips, under the
-        open fingers (higher than the hand's underside: anywhere under the hand), with the box it must leave:
-        the hand's footprint, ``finger_clearance`` wider."""
-        sc, cfg = self.scene, self.config
-        closing = np.array([-np.sin(yaw), np.cos(yaw)])
-        across = np.array([closing[1], -closing[0]])
-        half_along, half_across = HAND_HALF_LENGTH + cfg.finger_clearance, HAND_HALF_WIDTH + cfg.finger_clearance
-        corners = np.array([grasp[:2] + a * half_along * closing + b * half_across * across
-                            for a in (-1, 1) for b in (-1, 1)])
-        for root in sorted(self.movable - {self.obj}):
-            pts = sc.corners(sc.geoms(root))
-            top = float(pts[:, 2].max())
-            if top <= tip_z:
-                continue
-            under_hand = top > tip_z + HAND_ABOVE_TIP
-            reach_along = half_along if under_hand else FINGER_UPPER[1] + cfg.finger_clearance
-            reach_across = half_across if under_hand else FINGER_UPPER[2] + cfg.finger_clearance
-            rel = pts[:, :2] - grasp[:2]
-            along, side = rel @ closing, rel @ across
-            if along.min() < reach_along and along.max() > -reach_along and \
-                    side.min() < reach_across and side.max() > -reach_across:
-                raise Crowded(root, corners.min(0), corners.max(0),
-                              f"{sc.body_name(root)!r} stands where the hand goes down for {sc.body_name(self.obj)!r}")
 
     def _plan_chord(self, half: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> _Plan:
         """A grasp for a dish too flat for a rim grasp (a plate: its rim is a 5 mm lip sloping up 20 degrees,

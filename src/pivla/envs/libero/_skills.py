@@ -8,7 +8,6 @@ state every step, so the control is closed-loop proportional control towards mov
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -287,13 +286,10 @@ class Push(Skill):
     PHASES = ("approach", "lower", "push", "rise")
     PRECISE = frozenset({"lower", "push"})
 
-    def __init__(self, scene: Scene, config: ExpertConfig, obj: int, goal_xy: np.ndarray,
-                 enough: Callable[[], bool] | None = None) -> None:
-        """``enough``: the push may stop short of ``goal_xy`` once this holds (the object is out of the way)."""
+    def __init__(self, scene: Scene, config: ExpertConfig, obj: int, goal_xy: np.ndarray) -> None:
         super().__init__(scene, config)
         self.obj = obj
         self.goal_xy = np.asarray(goal_xy, dtype=np.float64)
-        self.enough = enough
         lo, hi = scene.aabb(obj)
         self.top = float(hi[2])
         self.tip_z = lo[2] + max(0.012, 0.35 * (hi[2] - lo[2]))
@@ -330,8 +326,7 @@ class Push(Skill):
         if phase == "push":
             moved = float((self._centre() - self.start) @ self.u)
             goal = self.reach(np.array([*self._contact(0.03), z]))
-            done = moved >= self.distance or (self.enough is not None and self.enough())
-            return Command(goal, self.rot, 1.0), done or self.phase_steps >= 60
+            return Command(goal, self.rot, 1.0), moved >= self.distance or self.phase_steps >= 60
         goal = self.reach(np.array([ee[0], ee[1], self.top + 0.06]))
         return Command(goal, self.rot, 1.0), self._reached(goal, ee, rot, None, 0.02)
 

@@ -14,11 +14,9 @@ Subgoals run in a fixed order: drawers that must be open first (also the drawer 
 something into), then knobs, then pick-and-place in the BDDL's order, then closing. Before each one the
 expert checks LIBERO's own predicates; a subgoal already met is skipped, one still unmet after its skill ran
 is tried again (``max_skill_attempts``), and a met one that comes undone (a pot knocked off the stove) is
-done again. A pick whose only grasp failed with a movable neighbour where the open fingers or the hand go
-down (a milk carton beside a flat box) pushes that neighbour out of the hand's footprint, then tries again.
-Motion is closed-loop proportional control of the end effector towards waypoints in LIBERO's own action
-space (OSC_POSE deltas, 0.05 m / 0.5 rad at full scale), so recorded actions are what a policy has to
-output. Waypoints are kept within the arm's reach.
+done again. Motion is closed-loop proportional control of the end effector towards waypoints in LIBERO's
+own action space (OSC_POSE deltas, 0.05 m / 0.5 rad at full scale), so recorded actions are what a policy
+has to output. Waypoints are kept within the arm's reach.
 
 Variety for demonstrations, as on the simulated twin (``pivla.envs.tabletop.expert``): ``noise > 0`` adds
 Gaussian noise to the *executed* motion outside precise phases (going down to a grasp, closing, placing,
@@ -53,7 +51,7 @@ from pivla.envs.libero._geometry import (
     within_reach,
     wrist_distance,
 )
-from pivla.envs.libero._pick import Crowded, PickPlace, Target, miss_direction
+from pivla.envs.libero._pick import PickPlace, Target, miss_direction
 from pivla.envs.libero._skills import Command, Door, Drawer, ExpertConfig, Knob, PlanningError, Push, Skill
 
 __all__ = ["ARM_REACH", "ExpertConfig", "ExpertEvalConfig", "RolloutExpert", "TaskExpert", "expert_actor",
@@ -122,7 +120,6 @@ class TaskExpert:
                                       pos_gain=cfg.pos_gain * (1.0 + 0.1 * j[2]))
         self.config = cfg
         self.missing = cfg.miss > 0 and self.rng.uniform() < cfg.miss
-        self.pushed: set[int] = set()  # neighbours already pushed aside to make room for a grasp
         self.subgoals = self._subgoals(rs)
         self.skill = None
         self.current: _Subgoal | None = None
@@ -178,34 +175,18 @@ class TaskExpert:
                 self.missing = False
                 dist = self.rng.uniform(*self.config.miss_offset)
                 miss = miss_direction(self.scene, self.scene.entity_root(goal[1]), self.rng, dist)
-            target = Target(self.scene, goal[2], goal)
-            others = {self.scene.entity_root(n) for n in self.scene.rs.objects_dict} - self.pushed
-            if target.kind in ("object", "container"):
-                others.discard(target.root)
-            return PickPlace(self.scene, self.config, goal[1], target, share, miss, frozenset(others))
+            return PickPlace(self.scene, self.config, goal[1], Target(self.scene, goal[2], goal), share, miss)
         return make
 
-    def _make_room(self, crowded: Crowded) -> None:
-        """Push the neighbour crowding the current pick out of the way first; the pick is then planned again."""
-        name = next(n for n in self.scene.rs.objects_dict if self.scene.entity_root(n) == crowded.blocker)
-        lo, hi = crowded.lo, crowded.hi
-        self.pushed.add(crowded.blocker)
-        self.subgoals.insert(self.subgoals.index(self.current), _Subgoal(
-            lambda: self._clear(name, lo, hi), self._aside_maker(name, lo, hi, just_clear=True)))
-        self.current.tries -= 1  # the pick never started
-
-    def _aside_maker(self, name: str, lo: np.ndarray, hi: np.ndarray,
-                     just_clear: bool = False) -> Callable[[], Skill]:
-        """Push the object to the nearest free spot on the table out of the box ``lo``-``hi`` (``just_clear``:
-        only until it is out of the box)."""
+    def _aside_maker(self, name: str, lo: np.ndarray, hi: np.ndarray) -> Callable[[], Skill]:
+        """Push the object to the nearest free spot on the table out of the box ``lo``-``hi``."""
         def make() -> Skill:
             obj = self.scene.entity_root(name)
             planner = PickPlace(self.scene, self.config, name, Target.clear_of(self.scene, obj, lo, hi))
             spot = planner._plan_spot()
             o_lo, o_hi = self.scene.aabb(obj)
             centre_from_origin = (o_lo[:2] + o_hi[:2]) / 2 - self.scene.d.xpos[obj][:2]
-            enough = (lambda: self._clear(name, lo, hi)) if just_clear else None
-            return Push(self.scene, self.config, obj, spot.origin[:2] + centre_from_origin, enough)
+            return Push(self.scene, self.config, obj, spot.origin[:2] + centre_from_origin)
         return make
 
     def _drawer_maker(self, region: str, opening: bool) -> Callable[[], Skill]:
@@ -275,31 +256,23 @@ class TaskExpert:
                 if nxt is None:
                     return None
                 nxt.tries += 1
-                self.current = nxt
-                command = self._planned(self._start, nxt, ee, rot)
+                try:
+                    self.current, self.skill = nxt, nxt.make()
+                    command = self.skill.step(ee, rot)
+                except PlanningError as e:
+                    log.debug("subgoal given up for now: %s", e)
+                    command = None
             else:
-                command = self._planned(self.skill.step, ee, rot)
+                try:
+                    command = self.skill.step(ee, rot)
+                except PlanningError as e:
+                    log.debug("subgoal given up for now: %s", e)
+                    command = None
             if command is not None:
                 return command
             if self.skill is not None and self.skill.phase_name == "done" and not self.current.holds():
                 self.current.deferred = True
             self.skill = None
-        return None
-
-    def _start(self, subgoal: _Subgoal, ee: np.ndarray, rot: np.ndarray) -> Command | None:
-        self.skill = subgoal.make()
-        return self.skill.step(ee, rot)
-
-    def _planned(self, step: Callable[..., Command | None], *args: Any) -> Command | None:
-        """The skill's command, or None when its planning found no way (for now); a grasp crowded by a movable
-        neighbour first makes room."""
-        try:
-            return step(*args)
-        except Crowded as e:
-            log.debug("making room first: %s", e)
-            self._make_room(e)
-        except PlanningError as e:
-            log.debug("subgoal given up for now: %s", e)
         return None
 
     def _action(self, goal: np.ndarray | None, target_rot: np.ndarray | None, grip: float, ee: np.ndarray,
