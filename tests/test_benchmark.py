@@ -36,6 +36,15 @@ def test_comparisons_pair_episodes_within_each_seed_and_pool_the_seeds(tmp_path)
     assert res.compare(("main", "in_distribution", "aurd"), ("main", "unseen_env", "fixed")) is None  # not run
 
 
+def test_a_report_of_a_run_stopped_early_draws_no_empty_figures(tmp_path):
+    """Before the test stage (every evaluation still missing) the report has its tables and no figures."""
+    atomic_write_json(tmp_path / "benchmark_config.json", dataclasses.asdict(BenchmarkConfig(out=str(tmp_path))))
+    benchmark.write_benchmark_report(tmp_path)
+    data = json.loads((tmp_path / "benchmark.json").read_text())
+    assert data["figures"] == [] and not (tmp_path / "figures").exists()
+    assert "not run" in (tmp_path / "benchmark.md").read_text()
+
+
 def test_every_decision_is_taken_on_validation_seeds_and_the_plan_tests_each_table():
     cfg = BenchmarkConfig()
     b = benchmark.Benchmark(cfg)

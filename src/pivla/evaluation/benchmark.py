@@ -696,10 +696,13 @@ def _demo_counts(res: Results, cfg: BenchmarkConfig, hardest: str, table: Callab
 
 
 def _figures(out: Path, cm: Iterable[int], levels: dict, sens: dict, counts: dict) -> list[str]:
-    """PNG figures (relative paths); curves without results are left out."""
+    """PNG figures (relative paths); curves without results are left out, and figures without any."""
     from pivla.evaluation.report import _plt, _save
 
     plt, written = _plt(), []
+
+    def measured(curves: Iterable[list]) -> bool:
+        return any(r is not None for rates in curves for r in rates)
 
     def curve(ax: Any, xs: list, rates: list[dict | None], label: str) -> None:
         pts = [(x, r) for x, r in zip(xs, rates) if r is not None]
@@ -710,6 +713,8 @@ def _figures(out: Path, cm: Iterable[int], levels: dict, sens: dict, counts: dic
                         marker="o", capsize=3, label=label)
 
     for name, per_exec in levels.items():
+        if not measured(per_exec.values()):
+            continue
         fig, ax = plt.subplots(figsize=(5, 3.5))
         for e, rates in per_exec.items():
             curve(ax, list(cm), rates, e)
@@ -717,14 +722,14 @@ def _figures(out: Path, cm: Iterable[int], levels: dict, sens: dict, counts: dic
         ax.legend()
         written.append(f"figures/{name}.png")
         _save(fig, out / written[-1])
-    if sens:
+    if measured([p["success"] for p in pts] for pts in sens.values()):
         fig, axes = plt.subplots(1, len(sens), figsize=(4 * len(sens), 3.2))
         for ax, (key, pts) in zip(np.atleast_1d(axes), sens.items()):
             curve(ax, [p["value"] for p in pts], [p["success"] for p in pts], "AURD")
             ax.set(xlabel=key, ylabel="validation success (%)", ylim=(0, 102))
         written.append("figures/sensitivity.png")
         _save(fig, out / written[-1])
-    if counts:
+    if measured([p["success"] for p in pts] for pts in counts.values()):
         fig, ax = plt.subplots(figsize=(5, 3.5))
         for key, pts in counts.items():
             curve(ax, [p["demos"] for p in pts], [p["success"] for p in pts], key)
