@@ -27,6 +27,7 @@ from pivla.bench.policy import default_policy, random_obs
 from pivla.control.contract import Calibration
 from pivla.control.executors import executor_config, make_executor
 from pivla.control.runner import run_episode
+from pivla.envs import make_env
 from pivla.envs.rollout import episode_seed
 from pivla.policy import Policy
 
@@ -133,8 +134,6 @@ def closed_loop(policy, episodes: int, repeats: int) -> dict:
     encodings, decisions), timed inside the same episodes. Their difference is AURD's cost where it runs,
     with caches shared with the renderer, but without the simulator's run-to-run noise that the whole-step
     difference carries; ``loop_executor_overhead_pct`` relates it to fixed horizon's whole step."""
-    from pivla.envs import make_env
-
     env = make_env("tabletop", "pick_place", 0, image_size=policy.cfg.image_size, cameras=tuple(policy.cfg.cameras))
     seeds = [episode_seed(0, i) for i in range(episodes)]
     per_step: dict[str, list[float]] = {"fixed": [], "aurd": []}

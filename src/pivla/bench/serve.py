@@ -26,8 +26,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from pivla.bench.policy import default_policy
+from pivla.bench.policy import default_policy, random_obs
+from pivla.control.executors import make_executor
+from pivla.control.runner import run_episode
+from pivla.envs import make_env
+from pivla.envs.rollout import episode_seed
 from pivla.serving.client import RemotePolicy
+from pivla.serving.msgpack_numpy import packb
 from pivla.serving.server import ServeConfig, serve
 
 
@@ -61,8 +66,6 @@ def _default_policy(cfg: ServeBenchConfig) -> Any:
 
 def _serve_default(cfg: ServeBenchConfig, port: int) -> None:
     """Server process: the same untrained policy as the in-process side, on loopback."""
-    import torch
-
     torch.set_num_threads(cfg.threads)
     serve(ServeConfig(port=port, threads=cfg.threads), policy=_default_policy(cfg))
 
@@ -145,11 +148,6 @@ def _encode_round_trips(local: Any, url: str, observations: list[dict], cfg: Ser
 
 
 def _closed_loop(local: Any, remote: RemotePolicy, cfg: ServeBenchConfig) -> dict:
-    from pivla.control.executors import make_executor
-    from pivla.control.runner import run_episode
-    from pivla.envs import make_env
-    from pivla.envs.rollout import episode_seed
-
     spec = remote.spec
     env = make_env("tabletop", "pick_place", 0, image_size=spec.image_size, cameras=tuple(spec.cameras))
     per_step: dict[str, list[float]] = {"local": [], "remote": []}
@@ -178,11 +176,6 @@ def _closed_loop(local: Any, remote: RemotePolicy, cfg: ServeBenchConfig) -> dic
 
 def run_serve_bench(cfg: ServeBenchConfig) -> dict:
     """Loopback round trip against in-process, and the AURD closed loop remote against local (JSON-able)."""
-    import torch
-
-    from pivla.bench.policy import random_obs
-    from pivla.serving.msgpack_numpy import packb
-
     torch.set_num_threads(cfg.threads)
     local = _default_policy(cfg)
     port = _free_port()

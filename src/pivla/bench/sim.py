@@ -10,6 +10,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from pivla.envs.libero.env import make_env as make_libero
+from pivla.envs.libero.expert import RolloutExpert
+from pivla.envs.rollout import collect_episodes, run_episode
 from pivla.envs.tabletop import make_env
 from pivla.envs.tabletop.env import TRANS_SCALE
 from pivla.envs.tabletop.expert import make_expert
@@ -70,8 +73,6 @@ def _steps_per_s(image_size: int, steps: int, repeats: int, seed: int) -> list[f
 
 def _episodes_per_min(suite: str, episodes: int, image_size: int, realism: str, seed: int) -> tuple[float, float]:
     """Scripted-expert collection rate (both cameras rendered, one process) and its success rate."""
-    from pivla.envs.rollout import run_episode
-
     tasks = get_suite(suite)
     envs = [make_env(suite, i, image_size=image_size, realism=realism) for i in range(len(tasks))]
     expert = make_expert(0.0)
@@ -118,8 +119,6 @@ def measure_repeatability(trials: int = 30, seed: int = 0, servo: ServoConfig | 
 def expert_success(episodes: int, seed: int = 0, suites: tuple[str, ...] = ("pick_place", "drawer", "stack", "long"),
                    realisms: tuple[str, ...] = ("ideal", "servo")) -> dict[str, dict[str, Any]]:
     """Success rate of the noise-free expert per suite and realism (``episodes`` per task, no rendering)."""
-    from pivla.envs.rollout import collect_episodes
-
     out: dict[str, dict[str, Any]] = {}
     for realism in realisms:
         for suite in suites:
@@ -182,9 +181,6 @@ def _rate(env: Any, steps: int, repeats: int, rng: np.random.Generator,
 def _expert_rate(env: Any, suite: str, task: int, episodes: int) -> dict:
     """Scripted-expert episodes (official init states 0, 1, ...) per minute, every frame rendered and kept, as
     when collecting."""
-    from pivla.envs.libero.expert import RolloutExpert
-    from pivla.envs.rollout import run_episode
-
     actor = RolloutExpert(suite, task)
     t0 = time.perf_counter()
     results = [run_episode(env, actor, i, reset_options={"init_state": i}) for i in range(episodes)]
@@ -198,8 +194,6 @@ def _libero(cfg: SimBenchConfig) -> dict[str, Any]:
     """Median steps/s over repeats, with cameras read every step (by default the policy's resolution, reflections
     off), read every 5th step, and without cameras; one env
     exists at a time (each LIBERO process holds ~2 GB); actions are small random deltas, so the arm moves."""
-    from pivla.envs.libero.env import make_env as make_libero
-
     suite, size = cfg.suite or "libero_spatial", cfg.image_size or 128
     rng = np.random.default_rng(cfg.seed)
     out: dict[str, Any] = {"env": "libero", "suite": suite, "task": cfg.task, "steps": cfg.steps,

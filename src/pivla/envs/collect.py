@@ -20,7 +20,9 @@ from pathlib import Path
 from typing import Literal
 
 from pivla.data.format import Episode, read_episodes, write_episodes
-from pivla.envs import TaskSpec, seeds, select_tasks
+from pivla.envs import TaskSpec, make_env, seeds, select_tasks
+from pivla.envs.libero import expert_actor
+from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
 from pivla.envs.rollout import episode_seed, iter_jobs, run_episode
 from pivla.io import atomic_write_json, read_json
 
@@ -81,7 +83,9 @@ def collect_demos(cfg: CollectConfig) -> int:
         raise ValueError("episodes must be >= 1")
     if cfg.env == "libero":
         return _collect_libero(cfg)
-    from pivla.envs.tabletop import make_env, parse_perturb
+    # The twin is imported only when it collects: its import sets the process's MuJoCo rendering variables.
+    from pivla.envs.tabletop import make_env as make_twin
+    from pivla.envs.tabletop import parse_perturb
     from pivla.envs.tabletop.env import CONTROL_HZ, ROT_SCALE, TRANS_SCALE
     from pivla.envs.tabletop.expert import make_expert
 
@@ -91,7 +95,7 @@ def collect_demos(cfg: CollectConfig) -> int:
     out.mkdir(parents=True, exist_ok=True)
     expert = make_expert(cfg.noise, cfg.miss)
     factories = {
-        spec.name: functools.partial(make_env, cfg.suite, spec.name, image_size=cfg.size, realism=cfg.realism,
+        spec.name: functools.partial(make_twin, cfg.suite, spec.name, image_size=cfg.size, realism=cfg.realism,
                                      perturb=perturb.spec(), paraphrase=cfg.paraphrase)
         for spec in specs
     }
@@ -157,8 +161,6 @@ def collect_demos(cfg: CollectConfig) -> int:
 def _collect_libero(cfg: CollectConfig) -> int:
     """LIBERO demonstrations by the privileged-state scripted experts, one file per task; ``workers`` spreads
     whole tasks over processes (each LIBERO process holds ~2 GB)."""
-    from pivla.envs.libero import expert_actor
-
     unsupported = {"perturb (use a LIBERO-PRO suite)": cfg.perturb, "paraphrase (use a *_lan suite)": cfg.paraphrase,
                    "realism servo": cfg.realism != "ideal"}
     given = [flag for flag, value in unsupported.items() if value]
@@ -250,9 +252,6 @@ def _collect_libero_task(job: tuple[CollectConfig, TaskSpec]) -> tuple[TaskSpec,
     """(task, episodes kept, attempts) for one LIBERO task; runs in a worker process when ``workers > 1``. Attempt
     ``k`` plays the scene sampled with seed (seed, task, k), or official init state ``k`` (mod 50). Progress is
     kept per episode, so an interrupted task resumes at its next attempt."""
-    from pivla.envs import make_env
-    from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
-
     cfg, spec = job
     task = spec.index
     if not logging.getLogger().handlers:  # a spawned worker: its per-episode progress goes to the caller's log too

@@ -25,6 +25,7 @@ from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
 from pivla.evaluation.stats import compare, paired_successes, wilson_interval
 from pivla.io import atomic_write_bytes
 from pivla.training.config import TrainConfig, check_target_divides
+from pivla.training.trainer import train
 
 log = logging.getLogger(__name__)
 
@@ -100,8 +101,6 @@ class AblationConfig:
 
 
 def _train_and_calibrate(cfg: AblationConfig, name: str, loss_overrides: dict) -> Path:
-    from pivla.training.trainer import train
-
     run = Path(cfg.out) / "runs" / name
     status = run / "status.json"
     if not (status.exists() and json.loads(status.read_text()).get("done")):

@@ -35,7 +35,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from pivla.control.calibrate import CalibrationConfig
+from pivla.control.calibrate import CalibrationConfig, calibrate
 from pivla.control.executors import ExecutorConfig, config_to_dict, executor_config
 from pivla.data.format import read_env_meta, read_episodes, write_episodes
 from pivla.envs import select_tasks
@@ -47,10 +47,13 @@ from pivla.evaluation.protocol import (
     calibration_episodes,
     recipe,
 )
+from pivla.evaluation.report import new_figure, save_figure
 from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
 from pivla.evaluation.stats import compare, paired_successes, wilson_interval
 from pivla.io import atomic_write_bytes, atomic_write_json
+from pivla.policy import load_policy
 from pivla.training.config import TrainConfig, check_target_divides
+from pivla.training.trainer import train
 
 log = logging.getLogger(__name__)
 
@@ -290,8 +293,6 @@ class Benchmark:
             run = self.run_dir(name, seed)
             status = run / "status.json"
             if not (status.exists() and json.loads(status.read_text()).get("done")):
-                from pivla.training.trainer import train
-
                 log.info("[train] %s seed %d", name, seed)
                 tc, resume = self._train_config(name, seed), (run / "checkpoints").exists()
                 self._timed("train", lambda tc=tc, resume=resume: train(tc, resume=resume))
@@ -371,9 +372,6 @@ class Benchmark:
 
     def sensitivity(self, hardest: str) -> None:
         """Fig. 16: AURD with thresholds calibrated at other settings, one at a time, on validation seeds."""
-        from pivla.control.calibrate import calibrate
-        from pivla.policy import load_policy
-
         policy = self.decisions["failure_round"]["headline"]
         for seed in range(self.cfg.seeds):
             run = self.run_dir(policy, seed)
@@ -699,9 +697,7 @@ def _demo_counts(res: Results, cfg: BenchmarkConfig, hardest: str, table: Callab
 
 def _figures(out: Path, cm: Iterable[int], levels: dict, sens: dict, counts: dict) -> list[str]:
     """PNG figures (relative paths); curves without results are left out, and figures without any."""
-    from pivla.evaluation.report import _plt, _save
-
-    plt, written = _plt(), []
+    written: list[str] = []
 
     def measured(curves: Iterable[list]) -> bool:
         return any(r is not None for rates in curves for r in rates)
@@ -717,26 +713,26 @@ def _figures(out: Path, cm: Iterable[int], levels: dict, sens: dict, counts: dic
     for name, per_exec in levels.items():
         if not measured(per_exec.values()):
             continue
-        fig, ax = plt.subplots(figsize=(5, 3.5))
+        fig, ax = new_figure((5, 3.5))
         for e, rates in per_exec.items():
             curve(ax, list(cm), rates, e)
         ax.set(xlabel=f"{name.replace('_', ' ')} (cm)", ylabel="success (%)", ylim=(0, 102))
         ax.legend()
         written.append(f"figures/{name}.png")
-        _save(fig, out / written[-1])
+        save_figure(fig, out / written[-1])
     if measured([p["success"] for p in pts] for pts in sens.values()):
-        fig, axes = plt.subplots(1, len(sens), figsize=(4 * len(sens), 3.2))
+        fig, axes = new_figure((4 * len(sens), 3.2), ncols=len(sens))
         for ax, (key, pts) in zip(np.atleast_1d(axes), sens.items()):
             curve(ax, [p["value"] for p in pts], [p["success"] for p in pts], "AURD")
             ax.set(xlabel=key, ylabel="validation success (%)", ylim=(0, 102))
         written.append("figures/sensitivity.png")
-        _save(fig, out / written[-1])
+        save_figure(fig, out / written[-1])
     if measured([p["success"] for p in pts] for pts in counts.values()):
-        fig, ax = plt.subplots(figsize=(5, 3.5))
+        fig, ax = new_figure((5, 3.5))
         for key, pts in counts.items():
             curve(ax, [p["demos"] for p in pts], [p["success"] for p in pts], key)
         ax.set(xlabel="demonstrations per task", ylabel="success (%)", ylim=(0, 102))
         ax.legend(fontsize=7)
         written.append("figures/demo_counts.png")
-        _save(fig, out / written[-1])
+        save_figure(fig, out / written[-1])
     return written

@@ -22,8 +22,10 @@ from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.evaluation.protocol import calibrate_on_rollouts, recipe, validation_rollouts
+from pivla.evaluation.report import write_report
 from pivla.evaluation.runner import EvalConfig, evaluate
 from pivla.training.config import TrainConfig, check_target_divides
+from pivla.training.trainer import train
 
 log = logging.getLogger("pivla.demo")
 
@@ -106,9 +108,6 @@ def _stage(name: str, done: bool) -> bool:
 
 def run_demo(cfg: DemoConfig) -> Path:
     """Run (or resume) every stage; returns the path of report.md."""
-    from pivla.evaluation.report import write_report
-    from pivla.training.trainer import train
-
     out = Path(cfg.out)
     train_dir, val_dir, run_dir = out / "data" / "train", out / "data" / "val", out / "policy"
     tc = train_config(cfg, train_dir, run_dir)

@@ -24,12 +24,14 @@ from pathlib import Path
 
 from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
+from pivla.envs import select_tasks
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.evaluation.protocol import calibrate_on_rollouts, validation_rollouts
 from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
 from pivla.evaluation.stats import compare, paired_successes, wilson_interval
 from pivla.io import atomic_write_bytes, atomic_write_json
 from pivla.training.config import TrainConfig, libero_preset
+from pivla.training.trainer import train
 
 log = logging.getLogger(__name__)
 
@@ -92,9 +94,6 @@ def _collected(data: Path, n_tasks: int) -> bool:
 
 def run_libero(cfg: LiberoRunConfig) -> Path:
     """Run (or resume) every stage; returns the path of libero.md."""
-    from pivla.envs import select_tasks
-    from pivla.training.trainer import train
-
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     data, run = out / "data", out / "policy"

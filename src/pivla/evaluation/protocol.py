@@ -11,10 +11,13 @@ import dataclasses
 import logging
 from pathlib import Path
 
-from pivla.control.calibrate import CalibrationConfig
+from pivla.control.calibrate import CalibrationConfig, calibrate
 from pivla.control.executors import FixedConfig
+from pivla.data.datasets import read_dataset
 from pivla.evaluation.runner import EvalConfig, evaluate
 from pivla.model.config import ModelConfig
+from pivla.policy import load_policy
+from pivla.training.checkpoint import write_calibration
 from pivla.training.config import LossConfig, TrainConfig
 
 log = logging.getLogger(__name__)
@@ -50,8 +53,6 @@ def validation_rollouts(run: Path, record: Path, results: Path, episodes: int, s
 def calibration_episodes(rollouts: Path, demos: Path) -> tuple[list, Path]:
     """The successful validation rollouts, or the validation demonstrations when the policy succeeded in none
     (a policy that never succeeds has no in-distribution signals of its own); with the directory used."""
-    from pivla.data.datasets import read_dataset
-
     episodes = read_dataset(rollouts) if rollouts.exists() else []
     if any(ep.success for ep in episodes):
         return episodes, rollouts
@@ -61,10 +62,6 @@ def calibration_episodes(rollouts: Path, demos: Path) -> tuple[list, Path]:
 
 def calibrate_on_rollouts(run: Path, rollouts: Path, demos: Path, cfg: CalibrationConfig | None = None) -> str:
     """Thresholds from ``calibration_episodes``, written into the run; returns the source used."""
-    from pivla.control.calibrate import calibrate
-    from pivla.policy import load_policy
-    from pivla.training.checkpoint import write_calibration
-
     policy = load_policy(run, device="cpu")
     episodes, source = calibration_episodes(rollouts, demos)
     calib, stats = calibrate(policy, episodes, cfg or CalibrationConfig(), source=str(source))

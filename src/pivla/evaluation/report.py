@@ -6,12 +6,15 @@ its parent directory names the condition (e.g. ``eval/unseen_env/aurd``).
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from pivla.evaluation.runner import load_rows
 from pivla.evaluation.stats import compare, paired_successes
@@ -37,22 +40,17 @@ def find_evaluations(root: Path) -> dict[tuple[str, str], Path]:
     return found
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+def new_figure(figsize: tuple[float, float], ncols: int = 1) -> tuple[Figure, Any]:
+    """A figure and its axes outside pyplot: no global backend to select and no figure registry to close."""
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(1, ncols)
 
 
-def _save(fig, path: Path) -> None:
-    import io
-
+def save_figure(fig: Figure, path: Path) -> None:
+    """PNG, written atomically."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     atomic_write_bytes(path, buf.getvalue())
-    _plt().close(fig)
 
 
 def _level(condition: str) -> int | None:
@@ -64,10 +62,9 @@ def plot_timeline(row: dict, calib: dict | None, path: Path) -> None:
     """Paper Fig. 15: U, U_act, U_pred over one episode, thresholds, and where AURD replanned, pruned or
     paused; a cut plan's untrusted step (never executed, so not on the curves) is marked by its U, and the
     steps of plans AURD committed to after a cut (run unchecked) are shaded."""
-    plt = _plt()
     tr = row["trace"]
     t = np.array([r["t"] for r in tr])
-    fig, ax = plt.subplots(figsize=(8, 3.2))
+    fig, ax = new_figure((8, 3.2))
     ax.plot(t, [r.get("u", np.nan) for r in tr], label="U", color="k")
     ax.plot(t, [r["u_act"] for r in tr], label="U_act", alpha=0.7)
     ax.plot(t, [r.get("u_pred", np.nan) for r in tr], label="U_pred", alpha=0.7)
@@ -87,13 +84,12 @@ def plot_timeline(row: dict, calib: dict | None, path: Path) -> None:
     ax.set_ylabel("uncertainty")
     ax.set_title(f"{row['task']} episode {row['episode']} ({'success' if row['success'] else 'failure'})")
     ax.legend(fontsize=7, ncol=6, loc="upper left")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_horizons(evals: dict[str, list[dict]], path: Path) -> None:
     """Paper Fig. 14 (right): distribution of executed horizons per executor."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 3.2))
+    fig, ax = new_figure((6, 3.2))
     bins = np.arange(-0.5, 9.5, 1)
     for name, rows in evals.items():
         hs = [h for r in rows for h, e in r["plan_events"]]
@@ -102,12 +98,11 @@ def plot_horizons(evals: dict[str, list[dict]], path: Path) -> None:
     ax.set_xlabel("executed horizon (actions per plan; 0 = pause)")
     ax.set_ylabel("fraction of plans")
     ax.legend(fontsize=8)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_u_by_step(rows: list[dict], path: Path) -> None:
     """Paper Fig. 13: uncertainty against the step inside the plan."""
-    plt = _plt()
     by: dict[int, list[tuple[float, float, float]]] = {}
     for r in rows:
         for s in r["trace"]:
@@ -117,19 +112,18 @@ def plot_u_by_step(rows: list[dict], path: Path) -> None:
         return
     ks = sorted(by)
     arr = [np.array(by[k]) for k in ks]
-    fig, ax = plt.subplots(figsize=(5, 3.2))
+    fig, ax = new_figure((5, 3.2))
     for i, name in enumerate(("U", "U_act", "U_pred")):
         ax.plot([k + 1 for k in ks], [a[:, i].mean() for a in arr], marker="o", label=name)
     ax.set_xlabel("horizon step k")
     ax.set_ylabel("mean uncertainty")
     ax.legend(fontsize=8)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_levels(levels: dict[str, dict[int, dict]], path: Path) -> None:
     """Paper Fig. 8: success against distraction level, with 95% intervals."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(5, 3.2))
+    fig, ax = new_figure((5, 3.2))
     for name, by_level in levels.items():
         ls = sorted(by_level)
         p = np.array([by_level[lv]["success_rate"] for lv in ls])
@@ -140,7 +134,7 @@ def plot_levels(levels: dict[str, dict[int, dict]], path: Path) -> None:
     ax.set_ylabel("success rate")
     ax.set_ylim(0, 1.05)
     ax.legend(fontsize=8)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def write_report(root: str | Path) -> Path:

@@ -20,7 +20,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
+from pivla.control import run_episode
 from pivla.control.contract import DEFAULT_ETA
 from pivla.control.executors import (
     AURDConfig,
@@ -28,10 +31,11 @@ from pivla.control.executors import (
     config_to_dict,
     make_executor,
 )
-from pivla.envs import seeds
+from pivla.data.format import read_episodes, write_episodes
+from pivla.envs import family, make_env, seeds, select_tasks
 from pivla.envs.rollout import episode_seed
 from pivla.evaluation.stats import wilson_interval
-from pivla.io import atomic_write_json, read_json
+from pivla.io import atomic_write_json, read_json, write_mp4
 from pivla.serving.client import open_policy
 
 log = logging.getLogger(__name__)
@@ -125,8 +129,6 @@ _STATE: dict[str, Any] = {}
 def _init_worker(cfg: EvalConfig, threads: int) -> None:
     """Load the policy once per worker. A failure is kept and raised by the first job: an exception in a
     Pool initializer would make the pool respawn workers forever instead of reporting it."""
-    import torch
-
     torch.set_num_threads(threads)
     _STATE["cfg"] = cfg
     _STATE["envs"] = {}
@@ -138,8 +140,6 @@ def _init_worker(cfg: EvalConfig, threads: int) -> None:
 
 
 def _env(task_index: int) -> Any:
-    from pivla.envs import make_env
-
     cfg, policy = _STATE["cfg"], _STATE["policy"]
     if task_index not in _STATE["envs"]:
         kw: dict[str, Any] = {"image_size": policy.spec.image_size, "cameras": tuple(policy.spec.cameras)}
@@ -150,8 +150,6 @@ def _env(task_index: int) -> Any:
 
 
 def _run_job(job: tuple[int, str, int, bool]) -> dict:
-    from pivla.control import run_episode
-
     if "error" in _STATE:
         raise RuntimeError(f"evaluation worker could not load the policy: {_STATE['error']}")
     task_index, task_name, episode, keep_frames = job
@@ -338,10 +336,8 @@ def _check_settings(cfg: EvalConfig) -> None:
         if cfg.condition not in seeds.CONDITIONS:
             raise SystemExit(f"--condition {cfg.condition!r}: with a seed family, one of {sorted(seeds.CONDITIONS)}")
     if cfg.env == "tabletop" and cfg.perturb:
-        from pivla.envs.tabletop.perturb import parse_perturb
-
         try:
-            parse_perturb(cfg.perturb)
+            family(cfg.env).parse_perturb(cfg.perturb)  # imports the twin only when it is evaluated
         except ValueError as e:
             raise SystemExit(f"--perturb {cfg.perturb!r}: {e}") from e
 
@@ -359,10 +355,6 @@ def evaluation_thresholds(calibration: Any, executor: ExecutorConfig) -> dict | 
 
 def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     """Run (or resume) an evaluation; writes results.json, episodes.jsonl, traces/ and videos/ in ``cfg.out``."""
-    from tqdm import tqdm
-
-    from pivla.envs import select_tasks
-
     _check_settings(cfg)
     out = Path(cfg.out)
     tasks = select_tasks(cfg.env, cfg.suite, cfg.tasks)
@@ -408,8 +400,6 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
             bar.update(1)
 
         if workers == 1:
-            import torch
-
             caller_threads = torch.get_num_threads()
             try:
                 _init_worker(cfg, threads)
@@ -431,8 +421,6 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
 
 
 def _write_video(folder: Path, row: dict, ep: Any) -> None:
-    from pivla.io import write_mp4
-
     folder.mkdir(parents=True, exist_ok=True)
     views = [ep.obs[k] for k in ("agentview_rgb", "eye_in_hand_rgb") if k in ep.obs]
     frames = np.concatenate(views, axis=2).repeat(2, axis=1).repeat(2, axis=2)
@@ -446,8 +434,6 @@ def _part_path(root: Path, row: dict) -> Path:
 
 def _record_part(root: Path, row: dict, ep: Any) -> None:
     """Write one finished episode at once (atomically), so an interrupted evaluation keeps its recordings."""
-    from pivla.data.format import write_episodes
-
     write_episodes(_part_path(root, row), [ep])
 
 
@@ -455,8 +441,6 @@ def _merge_rollouts(root: Path, rows: list[dict]) -> None:
     """``<task>_rollouts.hdf5`` per task from the per-episode parts, in episode order (so the file does not
     depend on which worker finished first). The parts stay (hidden from dataset readers): a later resume with
     more episodes rebuilds the files from them."""
-    from pivla.data.format import read_episodes, write_episodes
-
     by_task: dict[str, list] = {}
     for row in rows:
         part = _part_path(root, row)

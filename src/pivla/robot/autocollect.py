@@ -19,12 +19,14 @@ from __future__ import annotations
 import logging
 import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
 
+from pivla.data.format import Episode, write_episodes
 from pivla.envs import arm
-from pivla.robot.env import RobotEnv
+from pivla.robot.env import RobotEnv, RobotEnvConfig
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +80,7 @@ def add_table_markers(robot) -> None:
     Appending a body at the end keeps every existing body, geom, joint, actuator and camera id, so the
     twin's cached indices stay valid; this is checked before the model is swapped in.
     """
+    # The twin (MuJoCo) is imported only to collect on it: a real arm's install has no MuJoCo.
     import mujoco
 
     from pivla.envs.tabletop import env as twin
@@ -338,11 +341,7 @@ def run_on_twin(out_dir, attempts: int, suite: str = "pick_place", seed: int = 0
     Every attempt is written (success or not) to ``out_dir/<task>.hdf5``; returns the success rates of
     the vision verdict and of the twin's own check (reported, never used by the pipeline).
     """
-    from pathlib import Path
-
-    from pivla.data.format import Episode, write_episodes
-    from pivla.envs.tabletop import list_tasks
-    from pivla.robot.env import RobotEnvConfig
+    from pivla.envs.tabletop import list_tasks  # the twin only here (see add_table_markers)
     from pivla.robot.sim import SimCamera, SimRobot
 
     out_dir = Path(out_dir)

@@ -13,6 +13,7 @@ import logging
 import time
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from pivla.envs import arm
@@ -163,8 +164,6 @@ class Camera(abc.ABC):
 
 def square_resize(frame: np.ndarray, size: int) -> np.ndarray:
     """Centre-crops to a square and resizes (the dataset's images are square)."""
-    import cv2
-
     h, w = frame.shape[:2]
     s = min(h, w)
     y, x = (h - s) // 2, (w - s) // 2
@@ -175,16 +174,12 @@ class OpenCVCamera(Camera):
     """A USB camera through OpenCV; frames are centre-cropped and resized to ``size`` x ``size`` RGB."""
 
     def __init__(self, device: int | str = 0, size: int = 128) -> None:
-        import cv2
-
         self.device, self.size = device, size
         self._cap = cv2.VideoCapture(device)
         if not self._cap.isOpened():
             raise RuntimeError(f"cannot open camera {device!r}")
 
     def read(self) -> np.ndarray:
-        import cv2
-
         ok, frame = self._cap.read()
         if not ok or frame is None:
             raise RuntimeError(f"camera {self.device!r} returned no frame")

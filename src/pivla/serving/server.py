@@ -46,7 +46,10 @@ from websockets.http11 import Request, Response
 
 import pivla
 from pivla.control.contract import PolicySpec
+from pivla.model import encoder_runtime as er
+from pivla.model.backbone import ConvEncoder
 from pivla.model.onnx_encoder import ObservationEncoder
+from pivla.policy import load_policy
 from pivla.serving import protocol as P
 from pivla.serving.msgpack_numpy import DecodeError, packb, unpackb
 
@@ -137,9 +140,6 @@ def target_encoder_graph(policy: Any, spec: PolicySpec) -> tuple[bytes, int] | N
 
     The graph the policy encodes with is handed out, else (a policy on a GPU) one is exported; either way a
     client's encoding of probe observations must agree with ``policy.encode`` before it is."""
-    from pivla.model import encoder_runtime as er
-    from pivla.model.backbone import ConvEncoder
-
     target = policy.model.target
     if not isinstance(target.encoder, ConvEncoder):
         log.info("target encoder %s has no ONNX export: clients encode on the server", type(target.encoder).__name__)
@@ -331,7 +331,5 @@ def serve(cfg: ServeConfig, policy: Any = None) -> None:
     if policy is None:
         if not cfg.policy:
             raise ValueError("ServeConfig.policy: give the run directory to serve")
-        from pivla.policy import load_policy
-
         policy = load_policy(cfg.policy, device=cfg.device, threads=cfg.threads, encoder_runtime=cfg.encoder_runtime)
     asyncio.run(_Server(PolicyService(policy, cfg), cfg, api_key).run())

@@ -18,8 +18,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from accelerate import Accelerator
+from accelerate.state import PartialState
+from accelerate.utils import DistributedType, FullyShardedDataParallelPlugin, parse_flag_from_env
 from torch import nn
 from torch.distributed.tensor import DTensor, distribute_tensor
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
 
 from pivla import config as cfgmod
 from pivla.data.dataset import (
@@ -58,8 +63,6 @@ def _fsdp_plugin(cfg: TrainConfig):
     """FSDP2 from ``--fsdp true`` or from ``accelerate launch --use_fsdp`` (the plugin reads the other FSDP_*
     settings from the environment). FSDP1 is refused: it replaces parameters by flat shards, and the trainer
     calls the unwrapped model (loss terms, validation, the EMA target) outside the wrapper."""
-    from accelerate.utils import FullyShardedDataParallelPlugin, parse_flag_from_env
-
     if not (cfg.fsdp or parse_flag_from_env("ACCELERATE_USE_FSDP")):
         return None
     version = 2 if cfg.fsdp else int(os.environ.get("FSDP_VERSION", "1"))  # Accelerate's default is 1
@@ -73,10 +76,6 @@ def _fsdp_plugin(cfg: TrainConfig):
 
 
 def _accelerator(cfg: TrainConfig):
-    from accelerate import Accelerator
-    from accelerate.state import PartialState
-    from accelerate.utils import DistributedType
-
     use_cpu = cfg.device == "cpu" or (cfg.device == "auto" and not torch.cuda.is_available())
     mp = cfg.mixed_precision
     if mp == "auto":
@@ -130,8 +129,6 @@ class Trainer:
     """Holds the state of one run; ``run()`` trains to ``cfg.steps`` and returns the run directory."""
 
     def __init__(self, cfg: TrainConfig, resume: bool = False):
-        from accelerate.utils import DistributedType
-
         self.cfg = cfg
         self.run_dir = Path(cfg.out)
         if cfg.threads > 0:
@@ -326,12 +323,8 @@ class Trainer:
         return sums
 
     def run(self) -> Path:
-        from tqdm import tqdm
-
         cfg, acc = self.cfg, self.acc
         if acc.is_main_process:
-            from torch.utils.tensorboard import SummaryWriter
-
             self.run_dir.mkdir(parents=True, exist_ok=True)
             self.writer = SummaryWriter(str(self.run_dir / "tb"))
         self.model.train()

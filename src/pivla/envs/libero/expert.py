@@ -29,6 +29,7 @@ the reopening and second grasp that follow are recorded as they are, so the poli
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import dataclasses
 import json
@@ -41,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from pivla.envs import select_tasks
 from pivla.envs.libero._backend import libero
 from pivla.envs.libero._geometry import (
     ARM_REACH,
@@ -53,6 +55,7 @@ from pivla.envs.libero._geometry import (
 )
 from pivla.envs.libero._pick import PickPlace, Target, miss_direction
 from pivla.envs.libero._skills import Command, Door, Drawer, ExpertConfig, Knob, PlanningError, Push, Skill
+from pivla.envs.libero.env import list_tasks, make_env
 
 __all__ = ["ARM_REACH", "ExpertConfig", "ExpertEvalConfig", "RolloutExpert", "TaskExpert", "expert_actor",
            "expert_success", "run_expert_episode", "within_reach", "wrist_distance"]
@@ -302,8 +305,6 @@ def expert_actor(suite: str, task: int | str, config: ExpertConfig = ExpertConfi
     ``make_env("libero", ...)`` (rendering may be off).
     """
     _check_suite(suite)
-    from pivla.envs.libero.env import list_tasks
-
     names = [t.name for t in list_tasks(suite)]
     if isinstance(task, str) and task not in names:
         raise ValueError(f"unknown task {task!r} in suite {suite!r}")
@@ -422,9 +423,6 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
     ``{"suite", "tasks": [{task, name, successes, episodes, mean_steps, failed}], "successes", "episodes"}``
     over the episodes asked for; ``progress`` is called with each new row."""
     _check_suite(cfg.suite)
-    from pivla.envs import select_tasks
-    from pivla.envs.libero.env import make_env
-
     specs = select_tasks("libero", cfg.suite, cfg.tasks)
     seeds = _parse_indices(cfg.seeds) if cfg.seeds else None
     starts = seeds if seeds is not None else _parse_indices(cfg.init_states)
@@ -481,8 +479,6 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
 def main(argv: list[str] | None = None) -> int:
     """``python -m pivla.envs.libero.expert --suite libero_goal [--tasks 0,3] [--init-states 0-49] [--out f.jsonl]``:
     per-task expert success (resumable with ``--out``)."""
-    import argparse
-
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("--suite", required=True)
     parser.add_argument("--tasks", default=None, help="task indices or names, comma-separated (default: all)")
