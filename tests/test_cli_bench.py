@@ -3,6 +3,7 @@
 import json
 
 from pivla.cli import main
+from pivla.data.datasets import read_dataset
 
 
 def test_bench_infer_json(capsys):
@@ -24,3 +25,14 @@ def test_bench_train_json_for_both_token_layouts(capsys):
         assert main(["bench", "train", "--steps", "4", "--batch-size", "2", "--threads", "1", "--json", *extra]) == 0
         out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert out["grid_tokens"] is bool(extra) and out["samples_per_s"] > 0
+
+
+def test_bench_data_json(capsys, synthetic_data):
+    episodes = read_dataset(synthetic_data)
+    frames = sum(len(ep.actions) for ep in episodes)
+    for store in ("memory", "disk"):
+        assert main(["bench", "data", "--data", str(synthetic_data), "--image-store", store, "--json"]) == 0
+        out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert out["episodes"] == len(episodes) and out["frames"] == frames and out["image_store"] == store
+        assert out["pictures_gb"] == round(frames * 2 * 80 * 80 * 3 / 1e9, 3)  # resized to the recipe's 80 px
+        assert {"load_s", "peak_rss_gb", "anon_rss_gb_after", "file_rss_gb_after"} <= set(out)

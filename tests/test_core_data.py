@@ -2,7 +2,15 @@ import h5py
 import numpy as np
 import pytest
 
-from pivla.data.dataset import ChunkDataset, fit_norm_stats, gae, prepare_episode, split_episodes
+from pivla.data.dataset import (
+    ChunkDataset,
+    fit_norm_stats,
+    gae,
+    image_store,
+    prepare_episode,
+    prepare_episodes,
+    split_episodes,
+)
 from pivla.data.datasets import read_dataset
 from pivla.data.format import DatasetError, Episode, read_episodes, write_episodes
 from pivla.data.normalize import ActionStats
@@ -102,6 +110,29 @@ def test_chunk_targets_padding_mask_and_next_obs():
     assert s["images"].shape == (2, 16, 16, 3) and s["sp_images"].shape == (2, 2, 16, 16, 3)
     last = ds.sample(9, rng)
     assert last["sp_mask"].tolist() == [0, 0]
+
+
+@pytest.mark.parametrize("on_disk", [False, True])
+def test_streamed_episodes_share_one_picture_store(tmp_path, on_disk):
+    """Episodes prepared one at a time into one store (in memory, or in an unnamed file) equal those prepared
+    alone; a stream that no longer matches the lengths read before is refused."""
+    cfg = ModelConfig(image_size=16)
+    eps = [_episode(T=T, seed=T) for T in (7, 12, 5)]
+    stats, text = fit_norm_stats(eps, cfg), WordTokenizer.build([eps[0].instruction])
+    store = image_store(24, cfg, tmp_path / "cache" if on_disk else None)
+    assert isinstance(store, np.memmap) == on_disk and store.shape == (24, 2, 16, 16, 3)
+    if on_disk:
+        assert list((tmp_path / "cache").iterdir()) == []  # nothing to delete, even after a crash
+    prepared = prepare_episodes(iter(eps), [7, 12, 5], cfg, stats, text, store)
+    for ep, p in zip(eps, prepared):
+        alone = prepare_episode(ep, cfg, stats, text)
+        np.testing.assert_array_equal(p.images, alone.images)
+        np.testing.assert_array_equal(p.actions, alone.actions)
+        assert np.shares_memory(p.images, store)
+    with pytest.raises(DatasetError, match="episode 1 changed"):
+        prepare_episodes(iter(eps), [7, 11, 5], cfg, stats, text, store)
+    with pytest.raises(DatasetError, match="2 episodes read where there were 3"):
+        prepare_episodes(iter(eps[:2]), [7, 12, 5], cfg, stats, text, store)
 
 
 def test_action_stats_q99_and_binary_gripper():

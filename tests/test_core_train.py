@@ -85,6 +85,31 @@ def test_resume_matches_uninterrupted_run(tmp_path, synthetic_data):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
 
 
+def test_pictures_held_on_disk_train_the_same_model(tmp_path, synthetic_data):
+    """``--image-store disk`` (a dataset larger than the RAM) gives the weights of the in-memory store, bit for bit."""
+    runs = {where: train(dataclasses.replace(tiny_train_config(synthetic_data, tmp_path / where, steps=6),
+                                             image_store=where)) for where in ("memory", "disk")}
+    a, b = (ck.load_tensors(run / ck.MODEL_FILE) for run in runs.values())
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+    assert sorted(p.name for p in runs["disk"].iterdir()) == sorted(p.name for p in runs["memory"].iterdir())
+
+
+def test_extra_data_follows_the_data_in_one_split(tmp_path, synthetic_data):
+    from pivla.data.dataset import prepare_episode
+    from pivla.data.datasets import read_dataset
+    from pivla.data.synthetic import make_synthetic_dataset
+
+    extra = make_synthetic_dataset(tmp_path / "extra", episodes_per_goal=1, T=7, size=32, failures=1)
+    t = Trainer(tiny_train_config(synthetic_data, tmp_path / "run", extra_data=(str(extra),), val_fraction=0.0))
+    episodes = read_dataset(synthetic_data) + read_dataset(extra)
+    assert t.split == {"train_episodes": list(range(len(episodes))), "val_episodes": []}
+    for ep, prepared in zip(episodes, t.train_set.episodes, strict=True):
+        alone = prepare_episode(ep, t.cfg.model, t.stats, t.text)
+        np.testing.assert_array_equal(prepared.images, alone.images)
+        assert prepared.imitate == ep.success
+
+
 def test_bad_observations_and_corrupt_model_get_named_errors(tmp_path, synthetic_data):
     run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, ckpt_every=2, eval_every=2))
     policy = load_policy(run, device="cpu")

@@ -52,6 +52,7 @@ COMMANDS: dict[str, Command | Group] = {
     "bench": Group("speed on this machine, medians after warm-up", {
         "infer": Command("pivla.cli.bench", "infer", "batch-1 forward pass of a policy"),
         "train": Command("pivla.cli.bench", "train", "training samples/s on synthetic data"),
+        "data": Command("pivla.cli.bench", "data", "memory and seconds to load a training dataset"),
         "sim": Command("pivla.cli.bench", "sim", "environment steps/s with cameras"),
         "control": Command("pivla.cli.bench", "control", "AURD's per-step overhead against fixed horizon"),
         "hf": Command("pivla.cli.bench", "hf", "CPU cost of the hf backbone stack"),

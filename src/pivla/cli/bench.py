@@ -10,6 +10,7 @@ from typing import Annotated, Any, Generic, TypeVar
 import tyro
 
 from pivla.bench.control import ControlBenchConfig
+from pivla.bench.data import DataBenchConfig
 from pivla.bench.hf import HFBenchConfig
 from pivla.bench.policy import InferBenchConfig, TrainBenchConfig
 from pivla.bench.robot import RobotBenchConfig
@@ -47,6 +48,12 @@ def train(cmd: Bench[TrainBenchConfig]) -> int:
     from pivla.bench.policy import run_train_bench
 
     return _emit(run_train_bench(cmd.bench), cmd.json)
+
+
+def data(cmd: Bench[DataBenchConfig]) -> int:
+    from pivla.bench.data import run_data_bench
+
+    return _emit(run_data_bench(cmd.bench), cmd.json)
 
 
 def sim(cmd: Bench[SimBenchConfig]) -> int:

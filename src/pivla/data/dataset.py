@@ -7,8 +7,12 @@ the step: resuming a run replays exactly the batches an uninterrupted run would 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import tempfile
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -77,6 +81,39 @@ def prepare_episode(ep: Episode, cfg: ModelConfig, stats: NormStats, text: WordT
         text_mask=obs["text_mask"],
         imitate=bool(ep.success),
     )
+
+
+def image_store(frames: int, cfg: ModelConfig, directory: Path | None = None) -> np.ndarray:
+    """One uint8 array for the pictures of ``frames`` time steps, (frames, n_cam, S, S, 3): in memory, or with a
+    ``directory`` in an unnamed file there that the OS pages in and out, for datasets larger than the RAM (the
+    file is gone when the array is, even after a crash)."""
+    shape = (frames, len(cfg.cameras), cfg.image_size, cfg.image_size, 3)
+    if directory is None:
+        return np.empty(shape, np.uint8)
+    directory.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryFile(dir=directory) as f:
+        return np.memmap(f, np.uint8, "w+", shape=shape)
+
+
+def prepare_episodes(episodes: Iterable[Episode], lengths: Sequence[int], cfg: ModelConfig, stats: NormStats,
+                     text: WordTokenizer, store: np.ndarray) -> list[PreparedEpisode]:
+    """``prepare_episode`` for a stream of episodes, each one's pictures moved into ``store`` (``image_store``
+    for ``sum(lengths)`` frames), so that no more than one episode is held twice. ``lengths`` are the episodes'
+    step counts, read beforehand without pictures."""
+    out: list[PreparedEpisode] = []
+    start = 0
+    for i, ep in enumerate(episodes):
+        if i >= len(lengths) or len(ep.actions) != lengths[i]:
+            raise DatasetError(f"episode {i} changed while it was read (the dataset was written meanwhile)")
+        prepared = prepare_episode(ep, cfg, stats, text)
+        view = store[start : start + lengths[i]]
+        view[:] = prepared.images
+        out.append(dataclasses.replace(prepared, images=view))
+        start += lengths[i]
+    if len(out) != len(lengths):
+        raise DatasetError(f"{len(out)} episodes read where there were {len(lengths)} "
+                           "(the dataset was written meanwhile)")
+    return out
 
 
 def gae(rewards: np.ndarray, values: np.ndarray, dones: np.ndarray, gamma: float, lam: float,

@@ -3,18 +3,23 @@ a LeRobot v3.0 dataset (``pivla.data.lerobot``, detected by its ``meta/`` folder
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
-from pivla.data.format import Episode, dataset_files, read_episodes
-from pivla.data.lerobot import read_lerobot
+from pivla.data.format import Episode, dataset_files, iter_episodes
+from pivla.data.lerobot import iter_lerobot
+
+
+def iter_dataset(root: str | Path, obs_keys: tuple[str, ...] | None = None) -> Iterator[Episode]:
+    """The episodes below ``root`` one at a time: of every HDF5 file in file order then demo order, or of a
+    LeRobot v3.0 dataset in episode order. ``obs_keys`` limits (and requires) the observation keys loaded."""
+    if (Path(root) / "meta").is_dir():
+        yield from iter_lerobot(root, obs_keys)
+        return
+    for path in dataset_files(root):
+        yield from iter_episodes(path, obs_keys)
 
 
 def read_dataset(root: str | Path, obs_keys: tuple[str, ...] | None = None) -> list[Episode]:
-    """All episodes below ``root``: of every HDF5 file in file order then demo order, or of a LeRobot v3.0
-    dataset in episode order."""
-    if (Path(root) / "meta").is_dir():
-        return read_lerobot(root, obs_keys)
-    episodes: list[Episode] = []
-    for path in dataset_files(root):
-        episodes.extend(read_episodes(path, obs_keys))
-    return episodes
+    """Every episode of ``iter_dataset``, in memory."""
+    return list(iter_dataset(root, obs_keys))

@@ -18,6 +18,7 @@ the file-level instruction and ``success=True``. See docs/dataset.md.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,12 +115,16 @@ def _demo_sort_key(name: str) -> tuple[int, str]:
 
 def read_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> list[Episode]:
     """Read every ``demo_*`` of one file. ``obs_keys`` limits (and requires) the observation keys loaded."""
+    return list(iter_episodes(path, obs_keys))
+
+
+def iter_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> Iterator[Episode]:
+    """``read_episodes`` one episode at a time, so that a reader keeps no more than one in memory."""
     path = Path(path)
     try:
         f = h5py.File(path, "r")
     except OSError as e:
         raise DatasetError(f"{path}: not a readable HDF5 file ({e})") from e
-    episodes = []
     with f:
         if "data" not in f:
             raise DatasetError(f"{path}: missing key 'data'")
@@ -168,8 +173,7 @@ def read_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> 
                 raise DatasetError(
                     f"{path}: data/{name}/obs/agentview_rgb must be (T,H,W,3) uint8, got {img.shape} {img.dtype}"
                 )
-            episodes.append(ep)
-    return episodes
+            yield ep
 
 
 def read_env_meta(path: str | Path) -> dict:

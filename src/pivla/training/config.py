@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Literal
 
 from pivla.model.config import BackboneConfig, ModelConfig, TargetEncoderConfig
 
@@ -99,6 +100,9 @@ class TrainConfig:
     """Shard parameters, gradients and optimizer state across processes (FSDP2) instead of DDP."""
     progress: bool = True
     """Show a progress bar."""
+    image_store: Literal["auto", "memory", "disk"] = "auto"
+    """Where the training pictures are held: in memory, or in a file in the run directory that the OS pages in
+    (for datasets larger than the RAM); auto chooses disk when they would fill more than a third of the RAM."""
     model: ModelConfig = field(default_factory=lambda: ModelConfig(
         image_size=80, target_encoder=TargetEncoderConfig(downsample=4)))
     """The CMS model."""

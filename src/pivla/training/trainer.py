@@ -14,6 +14,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -34,11 +35,12 @@ from pivla.data.dataset import (
     collate,
     epoch_batch_indices,
     fit_norm_stats,
-    prepare_episode,
+    image_store,
+    prepare_episodes,
     split_episodes,
 )
-from pivla.data.datasets import read_dataset
-from pivla.data.format import DatasetError
+from pivla.data.datasets import iter_dataset
+from pivla.data.format import DatasetError, Episode
 from pivla.data.normalize import NormStats
 from pivla.data.text import build_text_tokenizer, load_text_tokenizer
 from pivla.data.transforms import batch_to_tensors
@@ -116,13 +118,20 @@ def _full(tensors: dict) -> dict:
     return {k: v.full_tensor().cpu() if isinstance(v, DTensor) else v for k, v in tensors.items()}
 
 
-def load_episodes(cfg: TrainConfig):
+def training_episodes(cfg: TrainConfig, obs_keys: tuple[str, ...] | None = None) -> Iterator[Episode]:
+    """The episodes of ``--data`` then of each ``--extra-data``, one at a time, with only ``obs_keys`` when given."""
     if not cfg.data:
         raise DatasetError("no dataset given (--data DIR)")
-    episodes = read_dataset(cfg.data)
-    for extra in cfg.extra_data:
-        episodes += read_dataset(extra)
-    return episodes
+    for root in (cfg.data, *cfg.extra_data):
+        yield from iter_dataset(root, obs_keys)
+
+
+def images_on_disk(cfg: TrainConfig, frames: int) -> bool:
+    """``cfg.image_store``, with auto choosing disk when the pictures would fill more than a third of the RAM."""
+    if cfg.image_store != "auto":
+        return cfg.image_store == "disk"
+    size = frames * len(cfg.model.cameras) * cfg.model.image_size ** 2 * 3
+    return size > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 3
 
 
 class Trainer:
@@ -136,7 +145,9 @@ class Trainer:
         self.acc = _accelerator(cfg)
         self.device = self.acc.device
         torch.manual_seed(cfg.seed)
-        episodes = load_episodes(cfg)
+        # Split, statistics and vocabulary from the episodes without their pictures; the pictures are then
+        # streamed into one store, so that a dataset is never held twice (it may not fit even once).
+        episodes = list(training_episodes(cfg, tuple(cfg.model.proprio_keys)))
         train_idx, val_idx = split_episodes(episodes, cfg.val_fraction, cfg.seed)
         train_eps = [episodes[i] for i in train_idx]
         if resume and (self.run_dir / ck.STATS_FILE).exists():
@@ -146,9 +157,15 @@ class Trainer:
             self.stats = fit_norm_stats(train_eps, cfg.model)
             self.text = build_text_tokenizer(cfg.model.backbone.name, [ep.instruction for ep in train_eps],
                                              cfg.model.max_text_len, cfg.model.backbone.path)
-        prep = lambda eps: [prepare_episode(ep, cfg.model, self.stats, self.text) for ep in eps]  # noqa: E731
-        self.train_set = ChunkDataset(prep(train_eps), cfg.model, cfg.loss.sp_steps)
-        self.val_set = ChunkDataset(prep([episodes[i] for i in val_idx]), cfg.model, cfg.loss.sp_steps) if val_idx else None
+        lengths = [len(ep.actions) for ep in episodes]
+        on_disk = images_on_disk(cfg, sum(lengths))
+        store = image_store(sum(lengths), cfg.model, self.run_dir if on_disk else None)
+        log.info("%d frames of pictures, %.1f GB, held %s", sum(lengths), store.nbytes / 1e9,
+                 "in a file the OS pages in" if on_disk else "in memory")
+        keys = (*cfg.model.cameras, *cfg.model.proprio_keys)
+        prepared = prepare_episodes(training_episodes(cfg, keys), lengths, cfg.model, self.stats, self.text, store)
+        self.train_set = ChunkDataset([prepared[i] for i in train_idx], cfg.model, cfg.loss.sp_steps)
+        self.val_set = ChunkDataset([prepared[i] for i in val_idx], cfg.model, cfg.loss.sp_steps) if val_idx else None
         self.split = {"train_episodes": [int(i) for i in train_idx], "val_episodes": [int(i) for i in val_idx]}
         self.model = CMSModel(cfg.model, len(self.text.vocab)).to(self.device)
         self.fsdp = self.acc.distributed_type == DistributedType.FSDP
