@@ -1,5 +1,6 @@
 import dataclasses
 import json
+import os
 
 import numpy as np
 import pytest
@@ -7,7 +8,8 @@ import torch
 
 from pivla import load_policy
 from pivla.training import checkpoint as ck
-from pivla.training.trainer import Trainer, train
+from pivla.training.config import TrainConfig
+from pivla.training.trainer import Trainer, images_on_disk, train
 from tests.conftest import tiny_train_config
 
 
@@ -93,6 +95,15 @@ def test_pictures_held_on_disk_train_the_same_model(tmp_path, synthetic_data):
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
     assert sorted(p.name for p in runs["disk"].iterdir()) == sorted(p.name for p in runs["memory"].iterdir())
+
+
+def test_auto_picture_store_goes_to_disk_past_a_third_of_the_ram():
+    cfg = TrainConfig()  # two cameras at 80 px: 38,400 bytes a frame
+    third = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 3
+    assert not images_on_disk(cfg, int(third // 38_400))
+    assert images_on_disk(cfg, int(third // 38_400) + 1)
+    assert images_on_disk(dataclasses.replace(cfg, image_store="disk"), 1)
+    assert not images_on_disk(dataclasses.replace(cfg, image_store="memory"), 10**12)
 
 
 def test_extra_data_follows_the_data_in_one_split(tmp_path, synthetic_data):
