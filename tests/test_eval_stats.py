@@ -1,4 +1,7 @@
-"""Paired statistics of the benchmark, against values computed by hand (in the comments) and published ones."""
+"""Paired statistics of the benchmark, against values computed by hand (in the comments) and published ones; the
+stage clock of resumable runs."""
+
+import time
 
 import numpy as np
 import pytest
@@ -11,6 +14,8 @@ from pivla.evaluation.stats import (
     paired_successes,
     wilson_interval,
 )
+from pivla.evaluation.timing import StageTimes
+from pivla.io import read_json
 
 Z2 = 1.959963984540054**2  # 3.841459
 
@@ -123,3 +128,27 @@ def test_paired_successes_aligns_rows_and_refuses_other_episodes():
         paired_successes(rows_a, rows_b[:-1])
     with pytest.raises(ValueError, match="other seeds"):
         paired_successes(rows_a, [dict(r, seed=r["seed"] + 1) for r in rows_b])
+
+
+def test_stage_times_are_saved_while_a_stage_runs_and_summed_over_invocations(tmp_path):
+    """A resumable run killed mid-stage keeps the stage's time up to the last save; a rerun adds to it."""
+    path = tmp_path / "timings.json"
+    seen = {}
+
+    def stage() -> str:
+        time.sleep(0.3)
+        seen.update(read_json(path))  # written by the clock while the stage still runs
+        return "done"
+
+    assert StageTimes(path, every=0.05).run("train", stage) == "done"
+    first = read_json(path)["train"]
+    assert 0 < seen["train"] <= first
+
+    def crash() -> None:
+        raise RuntimeError("stage failed")
+
+    with pytest.raises(RuntimeError, match="stage failed"):
+        StageTimes(path).run("train", crash)
+    StageTimes(path).run("eval", lambda: None)
+    times = read_json(path)
+    assert set(times) == {"train", "eval"} and times["train"] >= first

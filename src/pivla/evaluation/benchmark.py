@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +49,7 @@ from pivla.evaluation.protocol import (
 from pivla.evaluation.report import new_figure, save_figure
 from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
 from pivla.evaluation.stats import compare, paired_successes, wilson_interval
+from pivla.evaluation.timing import StageTimes
 from pivla.io import atomic_write_bytes, atomic_write_json
 from pivla.policy import load_policy
 from pivla.training.config import TrainConfig, check_target_divides
@@ -220,13 +220,8 @@ class Benchmark:
         return self.out / "benchmark.md"
 
     def _timed(self, name: str, fn: Callable[[], object]) -> None:
-        """Run a stage and add its wall time to timings.json (summed over invocations, kept if interrupted later)."""
-        t = time.time()
-        fn()
-        path = self.out / "timings.json"
-        timings = json.loads(path.read_text()) if path.exists() else {}
-        timings[name] = round(timings.get(name, 0.0) + time.time() - t, 1)
-        atomic_write_json(path, timings)
+        """Run a stage, its wall time added to timings.json (``StageTimes``)."""
+        StageTimes(self.out / "timings.json").run(name, fn)
 
     def _decide(self, name: str, fn: Callable[[], dict]) -> None:
         if name not in self.decisions:

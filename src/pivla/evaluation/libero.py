@@ -18,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.evaluation.protocol import calibrate_on_rollouts, validation_rollouts
 from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
 from pivla.evaluation.stats import compare, paired_successes, wilson_interval
+from pivla.evaluation.timing import StageTimes
 from pivla.io import atomic_write_bytes, atomic_write_json
 from pivla.training.config import TrainConfig, libero_preset
 from pivla.training.trainer import train
@@ -98,13 +98,8 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     data, run = out / "data", out / "policy"
     tasks = select_tasks("libero", cfg.suite, cfg.tasks)
-    timings: dict[str, float] = json.loads((out / "timings.json").read_text()) if (out / "timings.json").exists() else {}
-
-    def timed(name: str, fn) -> None:
-        t = time.time()
-        fn()
-        timings[name] = round(timings.get(name, 0.0) + time.time() - t, 1)
-        atomic_write_json(out / "timings.json", timings)
+    timings = StageTimes(out / "timings.json")
+    timed = timings.run
 
     if _stage("collect", _collected(data, len(tasks))):
         # Whole tasks spread over the workers; a finished task's file is kept, so a rerun collects the rest.
@@ -134,7 +129,7 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
                             executor=executor_config(name, **options), episodes=cfg.init_states, first_init_state=0,
                             seed=cfg.seed + 1000, workers=cfg.workers, videos=2, max_steps=cfg.max_steps)
             timed(f"eval_{name}", lambda: evaluate(ec))
-    return write_libero_report(out, cfg.suite, timings)
+    return write_libero_report(out, cfg.suite, timings.times)
 
 
 def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None = None) -> Path:
