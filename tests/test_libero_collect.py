@@ -91,6 +91,8 @@ def test_libero_run_end_to_end_on_one_task(tmp_path):
         assert sorted(r["init_state"] for r in rows) == [0, 1]
     data = json.loads((tmp_path / "run" / "libero.json").read_text())
     assert data["paired"]["aurd_vs_fixed"]["n"] == 2 and "Published figures" in report.read_text()
+    stages = {"collect", "train", "validation_rollouts", "calibrate", "eval_fixed", "eval_aurd"}
+    assert set(data["timings_s"]) == stages and all(t > 0 for t in data["timings_s"].values())
     mtime = (tmp_path / "run" / "policy" / "model.safetensors").stat().st_mtime_ns
     run_libero(cfg)  # every stage done: nothing is redone
     assert (tmp_path / "run" / "policy" / "model.safetensors").stat().st_mtime_ns == mtime
