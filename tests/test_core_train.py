@@ -102,6 +102,7 @@ def test_auto_picture_store_goes_to_disk_past_a_third_of_the_ram():
     third = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 3
     assert not images_on_disk(cfg, int(third // 38_400))
     assert images_on_disk(cfg, int(third // 38_400) + 1)
+    assert images_on_disk(cfg, int(third // 38_400 // 2) + 1, local_processes=2)  # a copy per process
     assert images_on_disk(dataclasses.replace(cfg, image_store="disk"), 1)
     assert not images_on_disk(dataclasses.replace(cfg, image_store="memory"), 10**12)
 

@@ -126,11 +126,12 @@ def training_episodes(cfg: TrainConfig, obs_keys: tuple[str, ...] | None = None)
         yield from iter_dataset(root, obs_keys)
 
 
-def images_on_disk(cfg: TrainConfig, frames: int) -> bool:
-    """``cfg.image_store``, with auto choosing disk when the pictures would fill more than a third of the RAM."""
+def images_on_disk(cfg: TrainConfig, frames: int, local_processes: int = 1) -> bool:
+    """``cfg.image_store``, with auto choosing disk when the pictures would fill more than a third of the RAM
+    (each of the machine's ``local_processes`` training processes holds its own copy)."""
     if cfg.image_store != "auto":
         return cfg.image_store == "disk"
-    size = frames * len(cfg.model.cameras) * cfg.model.image_size ** 2 * 3
+    size = frames * len(cfg.model.cameras) * cfg.model.image_size ** 2 * 3 * local_processes
     return size > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 3
 
 
@@ -158,7 +159,8 @@ class Trainer:
             self.text = build_text_tokenizer(cfg.model.backbone.name, [ep.instruction for ep in train_eps],
                                              cfg.model.max_text_len, cfg.model.backbone.path)
         lengths = [len(ep.actions) for ep in episodes]
-        on_disk = images_on_disk(cfg, sum(lengths))
+        local = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))  # processes on this machine (torchrun, accelerate launch)
+        on_disk = images_on_disk(cfg, sum(lengths), local)
         store = image_store(sum(lengths), cfg.model, self.run_dir if on_disk else None)
         log.info("%d frames of pictures, %.1f GB, held %s", sum(lengths), store.nbytes / 1e9,
                  "in a file the OS pages in" if on_disk else "in memory")
