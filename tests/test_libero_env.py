@@ -210,6 +210,26 @@ def test_smoke_episode_into_dataset(env, tmp_path):
 
 
 @requires_libero
+def test_an_official_episode_does_not_depend_on_the_one_before():
+    """robosuite keeps the gripper's integrated command across resets: after an episode that ended with the
+    gripper closed, the same official state must still start exactly as in a fresh env."""
+    from pivla.envs import make_env
+
+    fresh, used = (make_env("libero", "libero_10", 3, render=False) for _ in range(2))
+    try:
+        start, _ = fresh.reset(seed=12, options={"init_state": 12})
+        used.reset(seed=3, options={"init_state": 3})
+        for _ in range(5):
+            used.step(np.array([0, 0, 0, 0, 0, 0, 1.0]))  # close the gripper
+        again, _ = used.reset(seed=12, options={"init_state": 12})
+        for key in ("ee_pos", "gripper_states", "joint_states"):
+            np.testing.assert_array_equal(again[key], start[key], err_msg=key)
+    finally:
+        fresh.close()
+        used.close()
+
+
+@requires_libero
 def test_render_false_has_no_images():
     from pivla.envs import make_env
 

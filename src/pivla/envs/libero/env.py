@@ -330,6 +330,17 @@ class LiberoEnv(gym.Env):
         for robot in self._env.env.robots:
             robot.initialization_noise = {"magnitude": 0.02 if on else 0.0, "type": "gaussian"}
 
+    def _open_gripper_command(self) -> None:
+        """Sets each gripper's commanded opening to fully open, as after the settling steps. robosuite integrates
+        the gripper command over time (``current_action``) and keeps it across soft resets, so without this an
+        episode's first steps (and, through them, the episode) depended on how the previous episode in the same
+        process ended: LIBERO-10 task 3 failed init states 12, 13, 20 and 21 after state 3 had run, and solved
+        them in a fresh process (docs/experiments.md#an-episode-that-depended-on-the-previous-one)."""
+        for robot in self._env.env.robots:
+            gripper = robot.gripper
+            for _ in range(int(np.ceil(2.0 / gripper.speed))):  # from any command to the open end of [-1, 1]
+                gripper.format_action(np.array([-1.0] * gripper.dof))
+
     def _seeded_reset(self, seed: int) -> dict[str, np.ndarray]:
         """LIBERO's reset (placement samplers included) with NumPy's global generator seeded, then restored.
         The model's body placements are put back as built first: LIBERO places an object in a fixture's region
@@ -338,6 +349,7 @@ class LiberoEnv(gym.Env):
         (the bowl lands a metre above the drawer)."""
         model = self._env.sim.model
         model.body_pos[:], model.body_quat[:] = self._built_pose
+        self._open_gripper_command()
         global_state = np.random.get_state()
         np.random.seed(seed % 2**32)
         try:
