@@ -131,6 +131,8 @@ def test_streamed_episodes_share_one_picture_store(tmp_path, on_disk):
         assert np.shares_memory(p.images, store)
     with pytest.raises(DatasetError, match="episode 1 changed"):
         prepare_episodes(iter(eps), [7, 11, 5], cfg, stats, text, store)
+    with pytest.raises(DatasetError, match="more than the 2 episodes read before"):
+        prepare_episodes(iter(eps), [7, 12], cfg, stats, text, store)
     with pytest.raises(DatasetError, match="2 episodes read where there were 3"):
         prepare_episodes(iter(eps[:2]), [7, 12, 5], cfg, stats, text, store)
 

@@ -103,7 +103,9 @@ def prepare_episodes(episodes: Iterable[Episode], lengths: Sequence[int], cfg: M
     out: list[PreparedEpisode] = []
     start = 0
     for i, ep in enumerate(episodes):
-        if i >= len(lengths) or len(ep.actions) != lengths[i]:
+        if i >= len(lengths):
+            raise DatasetError(f"more than the {len(lengths)} episodes read before (the dataset was written meanwhile)")
+        if len(ep.actions) != lengths[i]:
             raise DatasetError(f"episode {i} changed while it was read (the dataset was written meanwhile)")
         prepared = prepare_episode(ep, cfg, stats, text)
         view = store[start : start + lengths[i]]
