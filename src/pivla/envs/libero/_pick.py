@@ -316,12 +316,12 @@ class PickPlace(Skill):
                 score = (0.5 * min(clearance, 0.04) - 0.3 * float(np.linalg.norm(xy - prefer))
                          - 2.0 * max(stretch - COMFORT_REACH, 0.0) - 0.02 * abs(turn) - penalty)
                 if best is None or score > best[0]:
-                    best = (score, spot, foot)
+                    best = (score, spot, foot, underside)
         if best is None:
             raise PlanningError(f"no spot in region {t.site or 'next to it'!r} fits {sc.body_name(self.obj)!r}")
-        _, spot, foot = best
+        _, spot, foot, underside = best
         if spot.opening is not None:
-            spot.outside = self._outside(spot, foot)
+            spot.outside = self._outside(spot, foot, underside)
         return spot
 
     def _opening(self, point: np.ndarray, foot: np.ndarray, skip: set[int]) -> np.ndarray | None:
@@ -690,23 +690,43 @@ class PickPlace(Skill):
                 top = max(top, sc.ray_down(xy, 2.0, {self.obj})[0])
         return top + self.config.hand_clearance - (HAND_ABOVE_TIP - TIP_BELOW_EEF)
 
-    def _outside(self, spot: _Spot, foot: np.ndarray) -> np.ndarray:
-        """The object's origin where it goes down before coming in sideways: moved out along the way in until
-        no part of its footprint is under anything (plus ``insert_standoff`` from an enclosure, 1 cm from a
-        mere overhang), at the height it comes in."""
+    def _outside(self, spot: _Spot, foot: np.ndarray, underside: np.ndarray) -> np.ndarray:
+        """The object's origin where it goes down before coming in sideways, at the height it comes in.
+
+        Out of an enclosure: moved out along the way in until no part of its footprint is under anything, plus
+        ``insert_standoff``. From under a mere overhang (a bowl's rim under the rail above a half-open drawer):
+        where its footprint is under nothing and over nothing taller than the height it comes in at (the
+        drawer's front wall a few centimetres further out), searched in 2-mm steps, in the middle of the first
+        such stretch but at most 1 cm into it; with no such point, 1 cm past the first one clear of the
+        overhang."""
         lo_xy, covered = self._cover_map
-        enclosed = True
-        xy = spot.origin[:2]
-        for dist in np.arange(0.0, 0.4, SPOT_SPACING):
+        _, heights = self._surface_map
+        in_height = spot.support + self.config.place_above - 0.003
+
+        def at(dist: float) -> tuple[np.ndarray, np.ndarray, bool]:
+            """Origin xy, which footprint points are under something, whether all are over low ground."""
             xy = spot.origin[:2] + spot.opening * dist
             idx = np.rint((xy + foot - lo_xy) / SPOT_SPACING).astype(int)
             inside = np.all((idx >= 0) & (idx < covered.shape), axis=1)
-            over = covered[idx[inside, 0], idx[inside, 1]]
-            if dist == 0.0:
-                enclosed = bool(over.all() and inside.all())
-            if not over.any():
-                break
-        xy = xy + spot.opening * (self.config.insert_standoff if enclosed else 0.01)
+            idx = np.clip(idx, 0, np.array(covered.shape) - 1)
+            over = covered[idx[:, 0], idx[:, 1]] & inside
+            low = inside & (heights[idx[:, 0], idx[:, 1]] - underside <= in_height)
+            return xy, over, bool(low.all())
+
+        if at(0.0)[1].all():  # an enclosure
+            first = next((d for d in np.arange(0.0, 0.4, SPOT_SPACING) if not at(d)[1].any()), 0.4)
+            xy = at(first)[0] + spot.opening * self.config.insert_standoff
+            return np.array([*xy, spot.origin[2] + self.config.place_above])
+        dists = np.arange(0.0, 0.4, SPOT_SPACING / 5)
+        clear = [(d, at(d)[2]) for d in dists if not at(d)[1].any()]
+        start = next((i for i, (_, low) in enumerate(clear) if low), None)
+        if start is None:
+            xy = at((clear[0][0] if clear else 0.4) + 0.01)[0]
+        else:
+            end = start
+            while end + 1 < len(clear) and clear[end + 1][1] and clear[end + 1][0] - clear[end][0] < SPOT_SPACING / 4:
+                end += 1
+            xy = at(min(clear[start][0] + 0.01, (clear[start][0] + clear[end][0]) / 2))[0]
         return np.array([*xy, spot.origin[2] + self.config.place_above])
 
     def _clear_height(self, a: np.ndarray, b: np.ndarray, ignore: int) -> float:
