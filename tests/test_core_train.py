@@ -87,6 +87,28 @@ def test_resume_matches_uninterrupted_run(tmp_path, synthetic_data):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
 
 
+def test_the_clock_adds_checkpoints_a_resume_continues_from(tmp_path, synthetic_data):
+    """``ckpt_minutes`` checkpoints at log steps between the step interval's; resuming from one of them trains
+    the weights of the uninterrupted run."""
+    import shutil
+
+    cfg = tiny_train_config(synthetic_data, tmp_path / "full", steps=12, log_every=4, ckpt_every=100,
+                            ckpt_minutes=1e-9, keep_checkpoints=5)
+    full = train(cfg)
+    assert [p.name for p in sorted((full / "checkpoints").iterdir())] == [
+        "step_00000004", "step_00000008", "step_00000012"]
+    assert not [p for p in (train(tiny_train_config(synthetic_data, tmp_path / "off", steps=12, log_every=4,
+                                                    ckpt_every=100, keep_checkpoints=5)) / "checkpoints").iterdir()
+                if p.name != "step_00000012"]  # the default 10 minutes do not pass in a tiny run
+    shutil.copytree(full, tmp_path / "killed")
+    shutil.rmtree(tmp_path / "killed" / "checkpoints" / "step_00000012")  # killed between steps 8 and 12
+    (tmp_path / "killed" / ck.MODEL_FILE).unlink()
+    resumed = train(dataclasses.replace(cfg, out=str(tmp_path / "killed")), resume=True)
+    a, b = ck.load_tensors(full / ck.MODEL_FILE), ck.load_tensors(resumed / ck.MODEL_FILE)
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+
+
 def test_pictures_held_on_disk_train_the_same_model(tmp_path, synthetic_data):
     """``--image-store disk`` (a dataset larger than the RAM) gives the weights of the in-memory store, bit for bit."""
     runs = {where: train(dataclasses.replace(tiny_train_config(synthetic_data, tmp_path / where, steps=6),

@@ -86,6 +86,10 @@ class TrainConfig:
     """Steps between validation losses (0: five times per run)."""
     ckpt_every: int = 0
     """Steps between checkpoints (0: five times per run)."""
+    ckpt_minutes: float = 10.0
+    """Also a checkpoint once this many minutes have passed since the last one (0: off), checked at log steps:
+    a training killed on a slow machine (a fifth of a LIBERO run is half an hour on 2 cores) loses at most
+    about this much. Resuming from any checkpoint trains the same weights."""
     keep_checkpoints: int = 2
     """Checkpoints kept on disk."""
     value_refresh_every: int = 0

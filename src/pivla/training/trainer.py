@@ -21,7 +21,12 @@ import numpy as np
 import torch
 from accelerate import Accelerator
 from accelerate.state import PartialState
-from accelerate.utils import DistributedType, FullyShardedDataParallelPlugin, parse_flag_from_env
+from accelerate.utils import (
+    DistributedType,
+    FullyShardedDataParallelPlugin,
+    broadcast_object_list,
+    parse_flag_from_env,
+)
 from torch import nn
 from torch.distributed.tensor import DTensor, distribute_tensor
 from torch.utils.tensorboard import SummaryWriter
@@ -341,6 +346,17 @@ class Trainer:
         self.model.train()
         return sums
 
+    def _save_due(self, since: float) -> bool:
+        """Whether ``ckpt_minutes`` have passed since ``since`` (checked at log steps). Rank 0's clock decides
+        for every rank: under FSDP all of them take part in a save."""
+        cfg = self.cfg
+        if cfg.ckpt_minutes <= 0 or self.step % cfg.log_every:
+            return False
+        due = [time.monotonic() - since >= cfg.ckpt_minutes * 60]
+        if self.acc.num_processes > 1:
+            broadcast_object_list(due)
+        return bool(due[0])
+
     def run(self) -> Path:
         cfg, acc = self.cfg, self.acc
         if acc.is_main_process:
@@ -350,6 +366,7 @@ class Trainer:
         bar = tqdm(total=cfg.steps, initial=self.step, desc="train", disable=not (cfg.progress and acc.is_main_process),
                    mininterval=2.0, dynamic_ncols=True)
         t0, s0 = time.time(), self.step
+        saved = time.monotonic()
         while self.step < cfg.steps:
             if cfg.loss.use_rl and cfg.loss.alpha > 0 and self.step % cfg.every(cfg.value_refresh_every) == 0:
                 self._refresh_values()
@@ -369,8 +386,9 @@ class Trainer:
                     for k, v in val.items():
                         self.writer.add_scalar(f"val/{k}", v, self.step)
                     self.history.append({"step": self.step, **{f"val_{k}": round(v, 5) for k, v in val.items()}})
-            if self.step % cfg.every(cfg.ckpt_every) == 0 or self.step == cfg.steps:
+            if self.step % cfg.every(cfg.ckpt_every) == 0 or self.step == cfg.steps or self._save_due(saved):
                 self._save(final=self.step == cfg.steps)
+                saved = time.monotonic()
         bar.close()
         if self.writer:
             self.writer.close()
