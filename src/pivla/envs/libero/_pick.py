@@ -718,15 +718,18 @@ class PickPlace(Skill):
             xy = at(first)[0] + spot.opening * self.config.insert_standoff
             return np.array([*xy, spot.origin[2] + self.config.place_above])
         dists = np.arange(0.0, 0.4, SPOT_SPACING / 5)
-        clear = [(d, at(d)[2]) for d in dists if not at(d)[1].any()]
-        start = next((i for i, (_, low) in enumerate(clear) if low), None)
-        if start is None:
-            xy = at((clear[0][0] if clear else 0.4) + 0.01)[0]
+        clear, fits = [], []
+        for d in dists:
+            _, over, low = at(d)
+            clear.append(not over.any())
+            fits.append(clear[-1] and low)
+        if any(fits):
+            first = last = fits.index(True)
+            while last + 1 < len(fits) and fits[last + 1]:
+                last += 1
+            xy = at(min(dists[first] + 0.01, (dists[first] + dists[last]) / 2))[0]
         else:
-            end = start
-            while end + 1 < len(clear) and clear[end + 1][1] and clear[end + 1][0] - clear[end][0] < SPOT_SPACING / 4:
-                end += 1
-            xy = at(min(clear[start][0] + 0.01, (clear[start][0] + clear[end][0]) / 2))[0]
+            xy = at((dists[clear.index(True)] if any(clear) else 0.4) + 0.01)[0]
         return np.array([*xy, spot.origin[2] + self.config.place_above])
 
     def _clear_height(self, a: np.ndarray, b: np.ndarray, ignore: int) -> float:
