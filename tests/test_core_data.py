@@ -108,6 +108,9 @@ def test_chunk_targets_padding_mask_and_next_obs():
     assert s["value_mask"].tolist() == [1, 1, 1, 1, 0, 0]
     assert (s["sp_index"] + 1 <= 3).all()  # o_{t+k} must exist: t + k <= 9
     assert s["images"].shape == (2, 16, 16, 3) and s["sp_images"].shape == (2, 2, 16, 16, 3)
+    prepared = ds.episodes[0]
+    np.testing.assert_array_equal(s["sp_images"], prepared.images[6 + s["sp_index"] + 1])
+    np.testing.assert_array_equal(s["sp_proprio"], prepared.proprio[6 + s["sp_index"] + 1])  # the same o_{t+k}
     last = ds.sample(9, rng)
     assert last["sp_mask"].tolist() == [0, 0]
 

@@ -28,6 +28,7 @@ def fake_batch(cfg=CFG, B=3, S=2, seed=0):
         "value_mask": np.ones((B, H + 1), np.float32),
         "sp_index": rng.integers(0, K, (B, S)),
         "sp_images": rng.integers(0, 255, (B, S, n, 32, 32, 3), dtype=np.uint8),
+        "sp_proprio": rng.normal(size=(B, S, cfg.proprio_dim)).astype(np.float32),
         "sp_mask": np.ones((B, S), np.float32),
     }
     return batch_to_tensors(batch)
@@ -156,6 +157,28 @@ def test_thumbnail_target_is_the_pooled_image_and_stays_put():
     assert _grads(m, unified_loss(m, m(b), b, LossConfig(use_rl=False))[0]) >= {"backbone", "state"}
     with pytest.raises(ValueError, match="grid must be >= 1"):
         cfg.target_encoder.grid = 0
+        CMSModel(cfg, vocab_size=12)
+
+
+def test_a_target_latent_that_reads_the_proprio():
+    """``proprio=w``: the pictures' latent, then w x the normalised proprio / sqrt(P); L_SP predicts both parts
+    of o_{t+k}; a latent that reads the proprio refuses to encode without it."""
+    cfg = ModelConfig(image_size=32, backbone=CFG.backbone)
+    pictures = CMSModel(cfg, vocab_size=12).latent_dim
+    cfg.target_encoder.proprio = 2.0
+    m = CMSModel(cfg, vocab_size=12)
+    assert m.latent_dim == pictures + cfg.proprio_dim
+    b = fake_batch(cfg)
+    z = m.target(b["sp_images"], b["sp_proprio"])
+    assert z.shape == (3, 2, pictures + cfg.proprio_dim)
+    torch.testing.assert_close(z[..., :pictures], m.target.picture_latents(b["sp_images"]))
+    torch.testing.assert_close(z[..., pictures:], 2.0 * b["sp_proprio"] / np.sqrt(cfg.proprio_dim))
+    loss, logs = unified_loss(m, m(b), b, LossConfig(use_rl=False))
+    assert torch.isfinite(loss) and logs["sp"] > 0
+    with pytest.raises(ValueError, match="reads the proprio too"):
+        m.target(b["sp_images"])
+    cfg.target_encoder.proprio = -1.0
+    with pytest.raises(ValueError, match="proprio weight must be >= 0"):
         CMSModel(cfg, vocab_size=12)
 
 

@@ -49,10 +49,10 @@ MAX_BATCH = 4
 TEXT = "pick up the red block"
 
 
-def write_run(run: Path) -> Path:
+def write_run(run: Path, target_proprio: float = 0.0) -> Path:
     """An untrained tiny policy as ``pivla train`` lays out a run (32 px, target encoder downsampled 2x)."""
     model_cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=2, vision_channels=(16, 32, 32, 32)),
-                            target_encoder=TargetEncoderConfig(downsample=2))
+                            target_encoder=TargetEncoderConfig(downsample=2, proprio=target_proprio))
     torch.manual_seed(0)
     text = WordTokenizer.build([TEXT, "put the block in the drawer"], model_cfg.max_text_len)
     model = CMSModel(model_cfg, len(text.vocab))
@@ -372,6 +372,38 @@ def test_encoding_on_the_server_when_asked(server, local):
         obs = observation(4)
         assert np.array_equal(policy.encode(obs), local.encode(obs))
         assert np.allclose(policy.encode_batch([obs, observation(5)]), local.encode_batch([obs, observation(5)]), atol=1e-6)
+
+
+def test_a_latent_that_reads_the_proprio(tmp_path):
+    """A target latent with the proprio: locally the pictures' part runs on ONNX Runtime and the proprio is
+    appended, as in PyTorch; a server hands out no graph, and a client sends the proprio keys to encode."""
+    run = write_run(tmp_path / "run", target_proprio=1.0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        local, eager = load_policy(run, device="cpu"), load_policy(run, device="cpu", encoder_runtime="torch")
+    finally:
+        torch.set_num_threads(threads)
+    assert local.encoder_runtime == "onnx" and local.spec.target_proprio
+    obs = local_obs(observation(3))
+    np.testing.assert_allclose(local.encode(obs), eager.encode(obs), atol=1e-5)
+    pushed = {**obs, "ee_pos": obs["ee_pos"] + np.array([0.06, 0.0, 0.0], np.float32)}
+    moved = local.encode(pushed) - local.encode(obs)  # the run's proprio statistics: mean 0, std 1
+    np.testing.assert_allclose(moved, np.eye(1, local.spec.latent_dim, local.spec.latent_dim - 8)[0] * 0.06 / np.sqrt(8),
+                               atol=1e-6)
+    (tmp_path / "key").write_text(KEY + "\n")
+    port = free_port()
+    proc = start_server(run, port, tmp_path / "key", tmp_path / "server.log")
+    try:
+        with RemotePolicy(f"127.0.0.1:{port}", api_key=KEY) as remote:
+            assert remote.encoder_runtime == "server" and remote.spec.target_proprio
+            assert "ee_pos" in remote.wire_observation(obs, encode=True)
+            np.testing.assert_allclose(remote.encode(observation(3)), local.encode(obs), atol=1e-5)
+            np.testing.assert_allclose(remote.encode_batch([observation(3), observation(4)]),
+                                       local.encode_batch([obs, local_obs(observation(4))]), atol=1e-5)
+    finally:
+        proc.terminate()
+        assert proc.wait(30) == 0
 
 
 def test_two_clients_at_once(server, local):

@@ -20,10 +20,16 @@ from pivla.control.contract import Calibration, PolicySpec
 from pivla.control.math import action_uncertainty, dequantize
 from pivla.data.normalize import ActionStats, NormStats
 from pivla.data.text import WordTokenizer, load_text_tokenizer
-from pivla.data.transforms import images_to_tensor, input_pipeline
+from pivla.data.transforms import (
+    NormalizeProprio,
+    ProprioVector,
+    compose,
+    images_to_tensor,
+    input_pipeline,
+)
 from pivla.model import encoder_runtime as er
 from pivla.model.backbone import ConvEncoder
-from pivla.model.cms import CMSModel, CMSOutput
+from pivla.model.cms import CMSModel, CMSOutput, proprio_latent
 from pivla.model.device import select_device
 from pivla.model.onnx_encoder import ObservationEncoder
 from pivla.model.pixels import check_image, resize_images
@@ -86,8 +92,10 @@ class Policy:
             cameras=tuple(self.cfg.cameras), image_size=self.cfg.image_size,
             proprio=_proprio_lengths(stats, self.cfg.proprio_keys),
             chunk=self.cfg.chunk, horizon=self.cfg.horizon, action_dim=self.cfg.action_dim,
-            latent_dim=model.latent_dim, target_cameras=model.target.cameras)
+            latent_dim=model.latent_dim, target_cameras=model.target.cameras, target_proprio=model.target.proprio > 0)
         self._inputs = input_pipeline(self.cfg, stats.proprio, text)
+        self._proprio = compose([ProprioVector(tuple(self.cfg.proprio_keys)),
+                                 NormalizeProprio(stats.proprio, self.cfg.proprio_dim)])
         # which head's actions are executed: the continuous one, unless the run trained only the discrete one
         self.action_head = action_head
         # U_act (Eq. 13) is the disagreement of two trained heads; a one-head ablation has none, and comparing
@@ -176,16 +184,29 @@ class Policy:
             return self.encode(obs_list[0])[None]
         return self._encode_torch(obs_list)
 
+    def _target_proprio(self, obs_list: Sequence[Mapping[str, Any]]) -> np.ndarray | None:
+        """(N, P) normalised proprio when the target latent reads it, else None."""
+        if self.model.target.proprio == 0:
+            return None
+        return np.stack([self._proprio(obs)["proprio"] for obs in obs_list])
+
     @torch.inference_mode()
     def _encode_torch(self, obs_list: Sequence[Mapping[str, Any]]) -> np.ndarray:
-        return self.model.target(images_to_tensor(self._target_images(obs_list), self.device)).float().cpu().numpy()
+        proprio = self._target_proprio(obs_list)
+        return self.model.target(images_to_tensor(self._target_images(obs_list), self.device),
+                                 None if proprio is None else torch.from_numpy(proprio).to(self.device)
+                                 ).float().cpu().numpy()
 
     def encode(self, obs: Mapping[str, Any]) -> np.ndarray:
         """Enc(o): the target encoder's latent of one observation (AURD's observed latent), on ONNX Runtime
-        when it can (``pivla.model.onnx_encoder.ObservationEncoder``), else in PyTorch."""
+        when it can (``pivla.model.onnx_encoder.ObservationEncoder``: the pictures' part), else in PyTorch."""
         if self._observation_encoder is None:
             return self._encode_torch([obs])[0]
-        return self._observation_encoder.encode(obs)
+        z = self._observation_encoder.encode(obs)
+        proprio = self._target_proprio([obs])
+        if proprio is None:
+            return z
+        return np.concatenate([z, proprio_latent(proprio[0], self.model.target.proprio)]).astype(np.float32)
 
     def to_actions(self, normalized: np.ndarray) -> np.ndarray:
         return self.stats.action.unnormalize(normalized)

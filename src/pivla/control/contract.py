@@ -51,6 +51,7 @@ class PolicySpec:
     action_space: str = "ee_delta_pos3_rot3_gripper1"
     latent_dim: int = 0
     target_cameras: int = 1  # leading cameras the target encoder reads (AURD's observed latent)
+    target_proprio: bool = False  # the target latent reads the proprio keys too
     extra: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
 
     @property
@@ -61,7 +62,7 @@ class PolicySpec:
         return {"cameras": list(self.cameras), "image_size": self.image_size,
                 "proprio": [[k, n] for k, n in self.proprio], "chunk": self.chunk, "horizon": self.horizon,
                 "action_dim": self.action_dim, "action_space": self.action_space, "latent_dim": self.latent_dim,
-                "target_cameras": self.target_cameras, "extra": dict(self.extra)}
+                "target_cameras": self.target_cameras, "target_proprio": self.target_proprio, "extra": dict(self.extra)}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> PolicySpec:
@@ -69,7 +70,8 @@ class PolicySpec:
                    proprio=tuple((str(k), int(n)) for k, n in d["proprio"]), chunk=int(d["chunk"]),
                    horizon=int(d["horizon"]), action_dim=int(d.get("action_dim", 7)),
                    action_space=str(d.get("action_space", cls.action_space)), latent_dim=int(d.get("latent_dim", 0)),
-                   target_cameras=int(d.get("target_cameras", 1)), extra=dict(d.get("extra", {})))
+                   target_cameras=int(d.get("target_cameras", 1)), target_proprio=bool(d.get("target_proprio", False)),
+                   extra=dict(d.get("extra", {})))
 
 
 @runtime_checkable

@@ -187,7 +187,7 @@ class ChunkDataset:
         else:
             ks = np.ones(self.sp_steps, np.int64)
             sp_mask = np.zeros(self.sp_steps, np.float32)
-        future = ep.images[np.minimum(t + ks, T - 1)]
+        future = np.minimum(t + ks, T - 1)
         return {
             **self.observation(e, t),
             "actions": ep.actions[idx],
@@ -198,7 +198,8 @@ class ChunkDataset:
             "returns": ret,
             "value_mask": vvalid.astype(np.float32),
             "sp_index": (ks - 1).astype(np.int64),
-            "sp_images": future,
+            "sp_images": ep.images[future],
+            "sp_proprio": ep.proprio[future],
             "sp_mask": sp_mask,
         }
 

@@ -108,6 +108,13 @@ class LatentDecoder(nn.Module):
         return img.unflatten(0, lead)
 
 
+def proprio_latent(proprio, weight: float):
+    """The proprio part of z = Enc(o): ``weight`` x the normalised proprio / sqrt(P), so that at weight 1 an L2
+    distance is an RMS error per feature in the training set's standard deviations, as the pictures' part is
+    per feature. NumPy or torch arrays alike (a policy appends it to the ONNX graph's picture latents)."""
+    return proprio * (weight / math.sqrt(proprio.shape[-1]))
+
+
 class TargetEncoder(nn.Module):
     """z = Enc(o): the frozen target of L_SP and the observed latent of AURD's U_pred.
 
@@ -116,24 +123,41 @@ class TargetEncoder(nn.Module):
     """
 
     def __init__(self, encoder: nn.Module, kind: str, ema_decay: float, cameras: int = 1, downsample: int = 1,
-                 grid: int = 1):
+                 grid: int = 1, proprio: float = 0.0):
         super().__init__()
         if downsample < 1 or grid < 1:
             raise ValueError(f"target encoder downsample and grid must be >= 1, got {downsample} and {grid}")
+        if not (math.isfinite(proprio) and proprio >= 0):
+            raise ValueError(f"target encoder proprio weight must be >= 0, got {proprio}")
         self.encoder = encoder
         self.kind = kind
         self.ema_decay = ema_decay
         self.cameras = cameras
         self.downsample = downsample
         self.grid = grid
+        self.proprio = float(proprio)
         self.encoder.requires_grad_(False)
 
     def extra_repr(self) -> str:
-        return f"kind={self.kind!r}, cameras={self.cameras}, downsample={self.downsample}, grid={self.grid}"
+        return (f"kind={self.kind!r}, cameras={self.cameras}, downsample={self.downsample}, grid={self.grid}, "
+                f"proprio={self.proprio}")
 
     @torch.no_grad()
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """(..., n_cam, 3, H, W) images in [0, 1] -> (..., d_z) latents of the first ``cameras`` cameras,
+    def forward(self, images: torch.Tensor, proprio: torch.Tensor | None = None) -> torch.Tensor:
+        """(..., n_cam, 3, H, W) images in [0, 1] (and, when the latent reads it, (..., P) normalised proprio)
+        -> (..., d_z) latents: the pictures' (``picture_latents``), then ``proprio`` x proprio / sqrt(P), an RMS
+        per feature like the pictures' part."""
+        z = self.picture_latents(images)
+        if self.proprio == 0:
+            return z
+        if proprio is None or proprio.shape[:-1] != z.shape[:-1]:
+            raise ValueError(f"this target latent reads the proprio too: give (..., P) for images {tuple(images.shape)}, "
+                             f"got {None if proprio is None else tuple(proprio.shape)}")
+        return torch.cat([z, proprio_latent(proprio.float(), self.proprio)], dim=-1)
+
+    @torch.no_grad()
+    def picture_latents(self, images: torch.Tensor) -> torch.Tensor:
+        """(..., n_cam, 3, H, W) images in [0, 1] -> (..., d_pic) latents of the first ``cameras`` cameras,
         area-averaged ``downsample`` times per side first."""
         images = images[..., : self.cameras, :, :, :]
         if self.downsample > 1:
@@ -185,11 +209,12 @@ def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder
         encoder = copy.deepcopy(backbone.vision)
         if tc.stages:
             encoder.truncate(tc.stages)
-        return TargetEncoder(encoder, tc.name, tc.ema_decay, tc.cameras, tc.downsample, tc.pool_grid)
+        return TargetEncoder(encoder, tc.name, tc.ema_decay, tc.cameras, tc.downsample, tc.pool_grid, tc.proprio)
     if tc.name == "dinov2":
-        return TargetEncoder(Dinov2Encoder(tc.path, cfg.image_size), "frozen", tc.ema_decay, tc.cameras)
+        return TargetEncoder(Dinov2Encoder(tc.path, cfg.image_size), "frozen", tc.ema_decay, tc.cameras,
+                             proprio=tc.proprio)
     if tc.name == "thumbnail":
-        return TargetEncoder(Thumbnail(tc.grid), "frozen", tc.ema_decay, tc.cameras)
+        return TargetEncoder(Thumbnail(tc.grid), "frozen", tc.ema_decay, tc.cameras, proprio=tc.proprio)
     raise ValueError(f"unknown target encoder {tc.name!r}; choose 'ema', 'frozen', 'dinov2' or 'thumbnail'")
 
 
@@ -204,7 +229,7 @@ class CMSModel(nn.Module):
         self.target = build_target_encoder(cfg, self.backbone)
         with torch.no_grad():
             probe = torch.zeros(1, len(cfg.cameras), 3, cfg.image_size, cfg.image_size)
-            self.latent_dim = int(self.target(probe).shape[-1])
+            self.latent_dim = int(self.target(probe, torch.zeros(1, cfg.proprio_dim)).shape[-1])
         self.discrete_head = DiscreteHead(d, cfg.action_dim, cfg.n_bins)
         self.continuous_head = ContinuousHead(d, cfg.action_dim)
         self.value_head = ValueHead(d, cfg.horizon)

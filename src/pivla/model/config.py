@@ -79,6 +79,10 @@ class TargetEncoderConfig:
     stages: int = 0
     """ema/frozen: the latent pools the output of the CNN's first stages (0: all). An earlier stage has a
     fraction of the weights, which AURD's encoding fetches into a cache the simulator has just used."""
+    proprio: float = 0.0
+    """Weight of the normalised proprioception appended to the pictures' latent (0: pictures only). The
+    observation in z = Enc(o) holds the arm's state too: with it, U_pred sees the arm moved by something other
+    than the chunk's own actions (docs/experiments.md#aurd-does-not-see-the-arm-pushed)."""
 
 
 @dataclass

@@ -127,8 +127,10 @@ class RemotePolicy:
         to name the problem."""
         cameras = self.spec.cameras[: self.spec.target_cameras] if encode else self.spec.cameras
         wire = {c: self._model_picture(obs[c]) for c in cameras if c in obs}
-        if not encode:
-            wire.update({k: obs[k] for k in (*self.spec.proprio_keys, *P.INSTRUCTION_KEYS) if k in obs})
+        keys = () if encode else P.INSTRUCTION_KEYS
+        if self.spec.target_proprio or not encode:
+            keys = (*self.spec.proprio_keys, *keys)
+        wire.update({k: obs[k] for k in keys if k in obs})
         return wire
 
     def _model_picture(self, image: Any) -> Any:

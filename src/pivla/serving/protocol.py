@@ -10,7 +10,7 @@ When the server has an API key, the opening request must carry ``Authorization: 
 
    ``protocol`` ("pivla-serving/1"), ``pivla_version``; ``spec``: ``PolicySpec.to_dict()`` (camera keys
    and image size, proprio keys with lengths, chunk K, horizon H, action dim and space, latent dim, target
-   cameras); ``calibration``: AURD's thresholds (a dict, or None when the run was not calibrated);
+   cameras, whether the target latent reads the proprio); ``calibration``: AURD's thresholds (a dict, or None when the run was not calibrated);
    ``action_stats``: the action normalization (q01, q99, gripper_dim) that ``to_actions`` needs;
    ``target_encoder``: how a client computes AURD's observed latent (below); ``limits``:
    max_message_bytes, max_image_side, max_batch; ``methods``: the request methods below.
@@ -30,7 +30,7 @@ When the server has an API key, the opening request must carry ``Authorization: 
      ``max_batch``): the same outputs with a leading batch axis.
    - ``{"method": "encode", "observation": obs}``: ``{"latent": (d_z,)}``;
      ``{"method": "encode_batch", "observations": [...]}``: ``{"latents": (N, d_z)}``. Only the target
-     encoder's cameras are needed.
+     encoder's cameras are needed, and the proprio keys when ``target_proprio`` (no instruction).
    - ``{"method": "target_encoder"}``: ``{"onnx": <graph bytes>, "sha256": <hex>}``.
 
    The key ``method`` is reserved: an observation never carries it.
@@ -120,9 +120,10 @@ def check_proprio(obs: Mapping[str, Any], key: str, length: int) -> np.ndarray:
 
 
 def check_observation(obs: Any, spec: PolicySpec, max_image_side: int, cameras: int | None = None,
-                      proprio: bool = True) -> dict[str, Any]:
+                      proprio: bool = True, text: bool | None = None) -> dict[str, Any]:
     """The observation the policy reads, with ``prompt`` renamed ``instruction``; ``cameras``: only the
-    first so many (an encoding needs the target encoder's), ``proprio``: also the proprio keys and text."""
+    first so many (an encoding needs the target encoder's), ``proprio``: also the proprio keys, ``text``: also
+    the instruction (default: with the proprio; an encoding whose latent reads the proprio needs no text)."""
     if not isinstance(obs, Mapping):
         raise RequestError(f"an observation is a map of key -> value, got {type(obs).__name__}")
     if METHOD_KEY in obs:
@@ -130,5 +131,6 @@ def check_observation(obs: Any, spec: PolicySpec, max_image_side: int, cameras: 
     out: dict[str, Any] = {c: check_image(obs, c, max_image_side) for c in spec.cameras[:cameras]}
     if proprio:
         out.update({k: check_proprio(obs, k, n) for k, n in spec.proprio})
+    if proprio if text is None else text:
         out["instruction"] = instruction_of(obs)
     return out

@@ -141,6 +141,9 @@ def target_encoder_graph(policy: Any, spec: PolicySpec) -> tuple[bytes, int] | N
     The graph the policy encodes with is handed out, else (a policy on a GPU) one is exported; either way a
     client's encoding of probe observations must agree with ``policy.encode`` before it is."""
     target = policy.model.target
+    if target.proprio > 0:
+        log.info("the target latent reads the proprio too: clients encode on the server")
+        return None
     if not isinstance(target.encoder, ConvEncoder):
         log.info("target encoder %s has no ONNX export: clients encode on the server", type(target.encoder).__name__)
         return None
@@ -240,7 +243,7 @@ class PolicyService:
         if not isinstance(request, dict):
             raise P.RequestError(f"a request is a map (an observation or a method call), got {type(request).__name__}")
         method = request.get(P.METHOD_KEY, "infer")
-        encode_only = {"cameras": self.spec.target_cameras, "proprio": False}
+        encode_only = {"cameras": self.spec.target_cameras, "proprio": self.spec.target_proprio, "text": False}
         t0 = time.perf_counter()
         if method == "infer":
             obs = request.get("observation") if P.METHOD_KEY in request else request

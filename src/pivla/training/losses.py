@@ -97,7 +97,7 @@ def unified_loss(model: CMSModel, out: CMSOutput, batch: dict[str, torch.Tensor]
         idx = batch["sp_index"]
         pred = torch.gather(out.latents, 1, idx.unsqueeze(-1).expand(-1, -1, out.latents.shape[-1]))
         if cfg.use_sp and cfg.beta > 0:
-            target = model.target(batch["sp_images"])
+            target = model.target(batch["sp_images"], batch.get("sp_proprio"))
             l_sp = state_prediction_loss(pred, target, batch["sp_mask"])
             total = total + cfg.beta * l_sp
             logs["sp"] = l_sp.detach()
