@@ -21,11 +21,10 @@ from pivla.control.math import action_uncertainty, dequantize
 from pivla.data.normalize import ActionStats, NormStats
 from pivla.data.text import WordTokenizer, load_text_tokenizer
 from pivla.data.transforms import (
-    NormalizeProprio,
-    ProprioVector,
     compose,
     images_to_tensor,
     input_pipeline,
+    proprio_steps,
 )
 from pivla.model import encoder_runtime as er
 from pivla.model.backbone import ConvEncoder
@@ -94,8 +93,7 @@ class Policy:
             chunk=self.cfg.chunk, horizon=self.cfg.horizon, action_dim=self.cfg.action_dim,
             latent_dim=model.latent_dim, target_cameras=model.target.cameras, target_proprio=model.target.proprio > 0)
         self._inputs = input_pipeline(self.cfg, stats.proprio, text)
-        self._proprio = compose([ProprioVector(tuple(self.cfg.proprio_keys)),
-                                 NormalizeProprio(stats.proprio, self.cfg.proprio_dim)])
+        self._proprio = compose(proprio_steps(self.cfg, stats.proprio))
         # which head's actions are executed: the continuous one, unless the run trained only the discrete one
         self.action_head = action_head
         # U_act (Eq. 13) is the disagreement of two trained heads; a one-head ablation has none, and comparing

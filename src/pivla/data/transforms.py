@@ -134,12 +134,16 @@ class NormalizeActions:
         return {**data, "actions": actions, "bins": bin_actions(actions, self.n_bins)}
 
 
+def proprio_steps(cfg: ModelConfig, proprio_stats: StandardStats) -> list[Callable[[Mapping[str, Any]], Sample]]:
+    """Observation -> normalised ``proprio``: the model's input, and the proprio part of a target latent."""
+    return [ProprioVector(tuple(cfg.proprio_keys)), NormalizeProprio(proprio_stats, cfg.proprio_dim)]
+
+
 def input_pipeline(cfg: ModelConfig, proprio_stats: StandardStats, text: TextTokenizer) -> Callable[[Mapping[str, Any]], Sample]:
     """Observation -> model inputs (``images``, ``proprio``, ``text_ids``, ``text_mask``), as NumPy arrays."""
     return compose([
         StackCameras(tuple(cfg.cameras), cfg.image_size),
-        ProprioVector(tuple(cfg.proprio_keys)),
-        NormalizeProprio(proprio_stats, cfg.proprio_dim),
+        *proprio_steps(cfg, proprio_stats),
         TokenizeInstruction(text),
     ])
 

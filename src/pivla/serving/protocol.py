@@ -131,6 +131,6 @@ def check_observation(obs: Any, spec: PolicySpec, max_image_side: int, cameras: 
     out: dict[str, Any] = {c: check_image(obs, c, max_image_side) for c in spec.cameras[:cameras]}
     if proprio:
         out.update({k: check_proprio(obs, k, n) for k, n in spec.proprio})
-    if proprio if text is None else text:
+    if proprio if text is None else text:  # the instruction goes with the proprio unless told otherwise
         out["instruction"] = instruction_of(obs)
     return out
