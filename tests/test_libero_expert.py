@@ -7,7 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from pivla.cli import main
 from pivla.envs.libero import _backend
+from pivla.evaluation.stats import wilson_interval
 
 pytestmark = pytest.mark.skipif(not _backend.available(), reason=f"LIBERO not importable; {_backend.INSTALL_HINT}")
 
@@ -180,7 +182,7 @@ def test_region_test_matches_libero():
 
 
 @pytest.mark.slow
-def test_expert_success_resumes_from_its_file(tmp_path):
+def test_expert_success_resumes_from_its_file(tmp_path, capsys):
     from pivla.envs.libero.expert import ExpertEvalConfig, expert_success
 
     out = tmp_path / "expert.jsonl"
@@ -197,3 +199,13 @@ def test_expert_success_resumes_from_its_file(tmp_path):
                             again.append)
     assert [r["init_state"] for r in again] == [2]  # only the new one ran
     assert second["tasks"][0]["episodes"] == 3 and second["tasks"][0]["successes"] == first["successes"] + 1
+
+
+    before = out.read_text()
+    assert main(["libero", "expert", "--suite", "libero_goal", "--tasks", "7", "--init-states", "0-2",
+                 "--out", str(out)]) == 0
+    assert out.read_text() == before  # a finished file only prints its table
+    n = second["tasks"][0]["successes"]
+    lo, hi = wilson_interval(n, 3)
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| 7 "))
+    assert f"| {n} / 3 | [{100 * lo:.1f}, {100 * hi:.1f}] |" in row

@@ -41,6 +41,8 @@ COMMANDS: dict[str, Command | Group] = {
     "libero": Group("LIBERO on the official protocol", {
         "run": Command("pivla.cli.experiments", "libero_run",
                        "one suite end to end: collect, train, calibrate, evaluate on the official init states"),
+        "expert": Command("pivla.cli.experiments", "libero_expert",
+                          "success of the scripted experts per task, on official init states or sampled scenes"),
     }),
     "export-video": Command("pivla.cli.data", "export_video", "MP4 previews of a dataset's episodes"),
     "data": Group("datasets", {

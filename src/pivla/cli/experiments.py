@@ -1,17 +1,19 @@
-"""``pivla demo``, ``pivla ablate``, ``pivla benchmark twin`` and ``pivla libero run``."""
+"""``pivla demo``, ``pivla ablate``, ``pivla benchmark twin``, ``pivla libero run`` and ``pivla libero expert``."""
 
 from __future__ import annotations
 
 import argparse
+import logging
 from dataclasses import dataclass, field
 from typing import Annotated
 
 import tyro
 
+from pivla.envs.libero.expert import ExpertEvalConfig, expert_success
 from pivla.evaluation import benchmark
 from pivla.evaluation.ablate import AblationConfig
 from pivla.evaluation.demo import DemoConfig, quick
-from pivla.evaluation.libero import LiberoRunConfig
+from pivla.evaluation.libero import LiberoRunConfig, expert_table
 
 
 @dataclass
@@ -64,6 +66,21 @@ def libero_run(cfg: LiberoRunConfig) -> int:
     from pivla.evaluation.libero import run_libero
 
     print(f"report at {run_libero(cfg)}")
+    return 0
+
+
+def libero_expert(cfg: ExpertEvalConfig) -> int:
+    """Privileged simulator state, no rendering, one episode per init state (or sampled scene), reset with its
+    own seed. With --out, episodes already in the JSONL are skipped, so a finished file just prints its table:
+    MUJOCO_GL=egl pivla libero expert --suite libero_10 --init-states 0-49 --out runs/expert_libero_10.jsonl"""
+    log = logging.getLogger("pivla.libero.expert")
+
+    def show(row: dict) -> None:
+        start = row["init_state"] if row["seed"] is None else f"seed {row['seed']}"
+        log.info("%s task %d %s: %s in %d steps (%.0f s)", row["suite"], row["task"], start,
+                 "success" if row["success"] else "FAILURE", row["steps"], row["seconds"])
+
+    print(expert_table(expert_success(cfg, show)))
     return 0
 
 

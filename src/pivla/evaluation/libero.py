@@ -132,6 +132,21 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
     return write_libero_report(out, cfg.suite, timings.times)
 
 
+def expert_table(results: dict) -> str:
+    """``expert_success``'s result as a markdown table: per task and over the suite, success with its Wilson
+    95% interval, mean steps and the failed init states (or seeds)."""
+    lines = ["| task | success | 95% CI | mean steps | failed |", "|---|---|---|---|---|"]
+    for t in results["tasks"]:
+        lo, hi = wilson_interval(t["successes"], t["episodes"])
+        failed = ", ".join(str(s) for s in t["failed"]) or "-"
+        lines.append(f"| {t['task']} {t['name'].replace('_', ' ')} | {t['successes']} / {t['episodes']} | "
+                     f"[{100 * lo:.1f}, {100 * hi:.1f}] | {t['mean_steps']:.0f} | {failed} |")
+    lo, hi = wilson_interval(results["successes"], results["episodes"])
+    lines.append(f"| **{results['suite']}** | **{results['successes']} / {results['episodes']}** | "
+                 f"[{100 * lo:.1f}, {100 * hi:.1f}] | | |")
+    return "\n".join(lines)
+
+
 def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None = None) -> Path:
     """libero.md and libero.json from the evaluations under ``out/eval``."""
     evals = {d.name: d for d in sorted((out / "eval").iterdir()) if (d / "results.json").exists()}

@@ -29,7 +29,6 @@ the reopening and second grasp that follow are recorded as they are, so the poli
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
 import json
@@ -376,7 +375,7 @@ def _parse_indices(text: str) -> list[int]:
 class ExpertEvalConfig:
     """Success of the scripted experts, per task, without rendering."""
 
-    suite: str = "libero_goal"
+    suite: str
     """libero_spatial, libero_object, libero_goal, libero_10 (or a LIBERO-PRO variant of them)."""
     tasks: str | None = None
     """Task indices or names, comma-separated (default: all)."""
@@ -474,35 +473,3 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
                       "failed": [s for s, e in done.items() if not e["success"]]})
     return {"suite": cfg.suite, "tasks": table, "successes": sum(t["successes"] for t in table),
             "episodes": sum(t["episodes"] for t in table)}
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m pivla.envs.libero.expert --suite libero_goal [--tasks 0,3] [--init-states 0-49] [--out f.jsonl]``:
-    per-task expert success (resumable with ``--out``)."""
-    parser = argparse.ArgumentParser(description=main.__doc__)
-    parser.add_argument("--suite", required=True)
-    parser.add_argument("--tasks", default=None, help="task indices or names, comma-separated (default: all)")
-    parser.add_argument("--init-states", default="0-49", help="official init states, e.g. 0-49 or 0,7,9")
-    parser.add_argument("--seeds", default=None, help="sampled scenes with these seeds instead, e.g. 0-9")
-    parser.add_argument("--out", default=None, help="JSONL of per-episode results (resumed when it exists)")
-    parser.add_argument("--noise", type=float, default=0.0)
-    parser.add_argument("--miss", type=float, default=0.0)
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    cfg = ExpertEvalConfig(suite=args.suite, tasks=args.tasks, init_states=args.init_states, seeds=args.seeds,
-                           out=args.out, noise=args.noise, miss=args.miss)
-
-    def show(row: dict) -> None:
-        start = row["init_state"] if row["seed"] is None else f"seed {row['seed']}"
-        log.info("%s task %d %s: %s in %d steps (%.0f s)", row["suite"], row["task"], start,
-                 "success" if row["success"] else "FAILURE", row["steps"], row["seconds"])
-
-    results = expert_success(cfg, show)
-    for t in results["tasks"]:
-        print(f"{t['task']:2d} {t['successes']:3d}/{t['episodes']:<3d} {t['name']}  failed: {t['failed']}")
-    print(f"total {results['successes']}/{results['episodes']}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
