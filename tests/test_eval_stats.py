@@ -1,11 +1,12 @@
 """Paired statistics of the benchmark, against values computed by hand (in the comments) and published ones; the
-stage clock of resumable runs."""
+stage clock of resumable runs; the experts' success table."""
 
 import time
 
 import numpy as np
 import pytest
 
+from pivla.evaluation.libero import expert_table
 from pivla.evaluation.stats import (
     compare,
     mcnemar_exact,
@@ -152,3 +153,15 @@ def test_stage_times_are_saved_while_a_stage_runs_and_summed_over_invocations(tm
     StageTimes(path).run("eval", lambda: None)
     times = read_json(path)
     assert set(times) == {"train", "eval"} and times["train"] >= first
+
+
+def test_expert_table_reports_each_task_and_the_suite_with_wilson_intervals():
+    results = {"suite": "libero_10", "successes": 92, "episodes": 100, "tasks": [
+        {"task": 3, "name": "put_the_bowl_in_the_drawer", "successes": 42, "episodes": 50, "mean_steps": 254.2,
+         "failed": [0, 13]},
+        {"task": 4, "name": "mugs_on_plates", "successes": 50, "episodes": 50, "mean_steps": 165.0, "failed": []}]}
+    lines = expert_table(results).splitlines()
+    # Wilson by hand: 42/50 -> [71.49, 91.66]; 50/50 -> [92.87, 100]; 92/100 -> [85.00, 95.89]
+    assert lines[2] == "| 3 put the bowl in the drawer | 42 / 50 | [71.5, 91.7] | 254 | 0, 13 |"
+    assert lines[3] == "| 4 mugs on plates | 50 / 50 | [92.9, 100.0] | 165 | - |"
+    assert lines[4] == "| **libero_10** | **92 / 100** | [85.0, 95.9] | | |"
