@@ -11,9 +11,9 @@ import tyro
 
 from pivla.envs.libero.expert import ExpertEvalConfig, expert_success
 from pivla.evaluation import benchmark
-from pivla.evaluation.ablate import AblationConfig
-from pivla.evaluation.demo import DemoConfig, quick
-from pivla.evaluation.libero import LiberoRunConfig, expert_table
+from pivla.evaluation.ablate import AblationConfig, run_ablation
+from pivla.evaluation.demo import DemoConfig, quick, run_demo
+from pivla.evaluation.libero import LiberoRunConfig, expert_table, run_libero
 
 
 @dataclass
@@ -37,8 +37,6 @@ def demo(cmd: DemoCommand) -> int:
     calibrate AURD on its successful rollouts -> evaluate AURD, fixed, ensemble and AdaHorizon in distribution
     and under perturbations -> report. Every stage is skipped when its output exists, so an interrupted demo
     resumes."""
-    from pivla.evaluation.demo import run_demo
-
     try:
         report = run_demo(cmd.sizes)
     except ValueError as e:
@@ -50,8 +48,6 @@ def demo(cmd: DemoCommand) -> int:
 def ablate(cfg: AblationConfig) -> int:
     """Table 4 (action heads), Table 5 (loss terms), Table 6 (execution strategies of the full model) and
     Table 7 (components added one at a time), each variant trained with the recipe."""
-    from pivla.evaluation.ablate import run_ablation
-
     try:
         print(run_ablation(cfg))
     except ValueError as e:
@@ -63,8 +59,6 @@ def libero_run(cfg: LiberoRunConfig) -> int:
     """Resumable stage by stage (every stage is skipped when its output exists; an interrupted evaluation
     continues); progress in the log, so it is safe to leave in the background for hours:
     nohup pivla libero run --suite libero_spatial --out runs/libero_spatial > runs/libero_spatial.log 2>&1 &"""
-    from pivla.evaluation.libero import run_libero
-
     print(f"report at {run_libero(cfg)}")
     return 0
 
