@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import json
 
 import numpy as np
@@ -200,7 +201,10 @@ def test_expert_success_resumes_from_its_file(tmp_path, capsys):
     assert [r["init_state"] for r in again] == [2]  # only the new one ran
     assert second["tasks"][0]["episodes"] == 3 and second["tasks"][0]["successes"] == first["successes"] + 1
 
-
+    with open(out, "a") as other:  # another run writing the file
+        fcntl.flock(other, fcntl.LOCK_EX)
+        with pytest.raises(RuntimeError, match="being written by another expert run"):
+            expert_success(ExpertEvalConfig(suite="libero_goal", tasks="7", init_states="0-3", out=str(out)))
     before = out.read_text()
     assert main(["libero", "expert", "--suite", "libero_goal", "--tasks", "7", "--init-states", "0-2",
                  "--out", str(out)]) == 0

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import fcntl
 import json
 import logging
 import time
@@ -435,10 +436,15 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
     config = ExpertConfig(noise=cfg.noise, miss=cfg.miss)
     with contextlib.ExitStack() as stack:
         logf = None
-        if path is not None:
+        if path is not None and any(key(spec.index, s) not in rows for spec in specs for s in starts):
             path.parent.mkdir(parents=True, exist_ok=True)
             torn = path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n")
             logf = stack.enter_context(open(path, "a"))
+            try:  # one writer per file: a second run would repeat the first one's episodes
+                fcntl.flock(logf, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise RuntimeError(f"{path} is being written by another expert run; wait for it to finish "
+                                   "or use another --out") from None
             if torn:
                 logf.write("\n")  # after an interrupted write, the next row starts on a line of its own
         for spec in specs:
