@@ -434,9 +434,10 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
     path = Path(cfg.out) if cfg.out else None
     rows = _read_rows(path) if path is not None else {}
     config = ExpertConfig(noise=cfg.noise, miss=cfg.miss)
+    todo = {spec.index: [s for s in starts if key(spec.index, s) not in rows] for spec in specs}
     with contextlib.ExitStack() as stack:
         logf = None
-        if path is not None and any(key(spec.index, s) not in rows for spec in specs for s in starts):
+        if path is not None and any(todo.values()):
             path.parent.mkdir(parents=True, exist_ok=True)
             torn = path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n")
             logf = stack.enter_context(open(path, "a"))
@@ -448,13 +449,12 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
             if torn:
                 logf.write("\n")  # after an interrupted write, the next row starts on a line of its own
         for spec in specs:
-            todo = [s for s in starts if key(spec.index, s) not in rows]
-            if not todo:
+            if not todo[spec.index]:
                 continue
             env = make_env(cfg.suite, spec.index, render=False)
             try:
                 actor = expert_actor(cfg.suite, spec.index, config)
-                for start in todo:
+                for start in todo[spec.index]:
                     t0 = time.perf_counter()
                     if seeds is None:
                         result = run_expert_episode(env, actor, init_state=start)
