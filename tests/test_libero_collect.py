@@ -148,3 +148,33 @@ def test_an_unfinished_task_with_other_settings_is_refused(tmp_path):
     with pytest.raises(ValueError, match="unfinished collection with other settings"):
         partial.load()
     assert (partial.dir / "progress.json").exists()
+
+
+def test_a_task_being_collected_by_another_process_is_refused(tmp_path):
+    """Two collections of one task (a rerun beside a worker left by a killed run) would interleave their attempt
+    files: the second is refused, naming the task, and the first one's progress is untouched."""
+    from pivla.envs import TaskSpec
+    from pivla.envs.collect import CollectConfig, _collect_libero_task, _PartialTask
+    from pivla.io import atomic_write_json, exclusive_lock
+
+    cfg = CollectConfig(out=str(tmp_path), env="libero", suite="libero_spatial", episodes=2)
+    spec = TaskSpec(suite="libero_spatial", index=5, name="task5", instruction="put it there", max_steps=220)
+    partial = _PartialTask(cfg, 5, spec.name)
+    atomic_write_json(partial.dir / "progress.json", {"settings": partial.settings, "attempts": 3, "kept": []})
+    with exclusive_lock(partial.dir / ".lock", "test"), pytest.raises(RuntimeError, match="collection of task5"):
+        _collect_libero_task((cfg, spec))
+    assert json.loads((partial.dir / "progress.json").read_text())["attempts"] == 3
+
+
+def test_a_worker_whose_run_was_killed_stops(monkeypatch):
+    from pivla.envs import collect
+
+    class Gone:
+        def is_alive(self):
+            return False
+
+    monkeypatch.setattr(collect.mp, "parent_process", lambda: Gone())
+    with pytest.raises(SystemExit, match="has ended"):
+        collect._stop_if_orphaned()
+    monkeypatch.setattr(collect.mp, "parent_process", lambda: None)  # no pool: the run itself
+    collect._stop_if_orphaned()

@@ -2,6 +2,11 @@
 
 import dataclasses
 import functools
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import av
 import numpy as np
@@ -118,3 +123,31 @@ def test_an_interrupted_collection_keeps_every_finished_task(tmp_path, monkeypat
     assert calls[1:] == [1]  # the second run collected the one missing task
     assert sorted(p.name for p in tmp_path.glob("*.hdf5")) == ["close_drawer_demo.hdf5", "open_drawer_demo.hdf5"]
     assert (tmp_path / "open_drawer_demo.hdf5").stat().st_mtime_ns == written
+
+
+def _children(pid: int) -> set[int]:
+    try:
+        return {int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()}
+    except FileNotFoundError:
+        return set()
+
+
+def test_kill_ends_a_collection_with_its_workers(tmp_path):
+    """``kill`` on a running ``pivla collect --workers 2`` ends its worker processes too: left running, they
+    would go on playing episodes for nobody (on LIBERO, a whole task each) beside the rerun that resumes it."""
+    proc = subprocess.Popen([sys.executable, "-m", "pivla", "collect", "--suite", "pick_place", "--episodes", "50",
+                             "--workers", "2", "--out", str(tmp_path / "data")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while len(workers := _children(proc.pid)) < 3 and time.monotonic() < deadline:  # 2 workers + resource tracker
+        time.sleep(0.5)
+    assert len(workers) >= 3, proc.stderr.read().decode()[-2000:] if proc.poll() is not None else workers
+    time.sleep(3)  # the workers are playing episodes
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    deadline = time.monotonic() + 20
+    while any(Path(f"/proc/{w}").exists() for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    alive = [w for w in workers if Path(f"/proc/{w}").exists()
+             and Path(f"/proc/{w}/stat").read_text().split()[2] != "Z"]
+    assert not alive

@@ -5,6 +5,7 @@ clobbers the previous version."""
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import shutil
@@ -68,6 +69,21 @@ def atomic_dir(path: str | Path, prefix: str | None = None) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+@contextlib.contextmanager
+def exclusive_lock(path: str | Path, what: str) -> Iterator[None]:
+    """Hold an advisory lock on ``path`` (created when missing) for the duration: one writer per file or folder
+    of results, so that two runs on the same output cannot repeat or interleave each other's work. A second
+    holder gets an error naming the path and ``what`` it is at once, instead of waiting."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise RuntimeError(f"{path} is being written by another {what}; wait for it to finish, stop it, or write elsewhere") from None
+        yield
 
 
 def write_mp4(path: str | Path, frames, fps: int) -> None:

@@ -7,6 +7,7 @@ never imports torch and ``pivla --help`` answers at once.
 
 from __future__ import annotations
 
+import signal
 import sys
 
 from pivla import __version__
@@ -76,8 +77,15 @@ COMMANDS: dict[str, Command | Group] = {
 }
 
 
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    """``kill`` ends a command the way Ctrl-C does: through its cleanup, so worker pools are terminated with it
+    (left running, a worker finishes its job for nobody) and stage clocks and partial results are saved."""
+    raise SystemExit(128 + signum)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     if argv[:1] == ["--version"]:
         print(f"pivla {__version__}")
         return 0

@@ -24,7 +24,7 @@ from pivla.envs import TaskSpec, make_env, seeds, select_tasks
 from pivla.envs.libero import expert_actor
 from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
 from pivla.envs.rollout import episode_seed, iter_jobs, run_episode
-from pivla.io import atomic_write_json, read_json
+from pivla.io import atomic_write_json, exclusive_lock, read_json
 
 log = logging.getLogger(__name__)
 
@@ -257,27 +257,38 @@ def _collect_libero_task(job: tuple[CollectConfig, TaskSpec]) -> tuple[TaskSpec,
     if not logging.getLogger().handlers:  # a spawned worker: its per-episode progress goes to the caller's log too
         logging.basicConfig(level=logging.INFO, format="%(message)s")
     partial = _PartialTask(cfg, task, spec.name)
-    kept, kept_attempts, attempts = partial.load()
-    wanted = cfg.episodes
-    budget = wanted if cfg.keep_failures else 3 * wanted + 10
-    if len(kept) >= wanted or attempts >= budget:
-        return spec, kept, attempts
-    env = make_env("libero", cfg.suite, task, image_size=cfg.size, render=True, init_state=0, init=cfg.libero_init)
-    actor = RolloutExpert(cfg.suite, task, ExpertConfig(noise=cfg.noise, miss=cfg.miss))
-    try:
-        while len(kept) < wanted and attempts < budget:
-            ep = run_episode(env, actor, episode_seed(episode_seed(cfg.seed, task), attempts))
-            ep.meta["init_state"] = env.init_state
-            ep.meta["init_seed"] = env.init_seed
-            keep = ep.success or cfg.keep_failures
-            if keep:
-                kept.append(ep)
-                kept_attempts.append(attempts)
-            partial.record(attempts, ep if keep else None, kept_attempts)
-            attempts += 1
-            log.info("%s task %d %s: %s in %d steps", cfg.suite, task,
-                     f"init state {env.init_state}" if env.init_state is not None else f"scene seed {env.init_seed}",
-                     "success" if ep.success else "failure", len(ep))
-    finally:
-        env.close()
+    with exclusive_lock(partial.dir / ".lock", f"collection of {spec.name}"):
+        kept, kept_attempts, attempts = partial.load()
+        wanted = cfg.episodes
+        budget = wanted if cfg.keep_failures else 3 * wanted + 10
+        if len(kept) >= wanted or attempts >= budget:
+            return spec, kept, attempts
+        env = make_env("libero", cfg.suite, task, image_size=cfg.size, render=True, init_state=0,
+                       init=cfg.libero_init)
+        actor = RolloutExpert(cfg.suite, task, ExpertConfig(noise=cfg.noise, miss=cfg.miss))
+        try:
+            while len(kept) < wanted and attempts < budget:
+                _stop_if_orphaned()
+                ep = run_episode(env, actor, episode_seed(episode_seed(cfg.seed, task), attempts))
+                ep.meta["init_state"] = env.init_state
+                ep.meta["init_seed"] = env.init_seed
+                keep = ep.success or cfg.keep_failures
+                if keep:
+                    kept.append(ep)
+                    kept_attempts.append(attempts)
+                partial.record(attempts, ep if keep else None, kept_attempts)
+                attempts += 1
+                log.info("%s task %d %s: %s in %d steps", cfg.suite, task,
+                         f"init state {env.init_state}" if env.init_state is not None
+                         else f"scene seed {env.init_seed}", "success" if ep.success else "failure", len(ep))
+        finally:
+            env.close()
     return spec, kept, attempts
+
+
+def _stop_if_orphaned() -> None:
+    """End a worker whose run was killed: it would otherwise collect its whole task (tens of minutes) for nobody,
+    holding the task against the rerun that resumes it. Its kept episodes are on disk already."""
+    parent = mp.parent_process()
+    if parent is not None and not parent.is_alive():
+        raise SystemExit("the collection run that started this worker has ended")
