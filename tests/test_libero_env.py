@@ -351,3 +351,66 @@ def test_a_sampled_object_in_a_fixture_starts_in_it():
             assert abs(pos[2] - official[2]) < 0.02 and np.linalg.norm(pos[:2] - official[:2]) < 0.1, (pos, official)
     finally:
         env.close()
+
+
+def _sphere_soup(n_lat: int = 40, n_lon: int = 80):
+    """A unit sphere as MuJoCo often stores meshes: three vertices of its own per face, texture u = longitude."""
+    lat, lon = np.linspace(0, np.pi, n_lat + 1), np.linspace(0, 2 * np.pi, n_lon + 1)
+    grid = np.stack(np.meshgrid(lat, lon, indexing="ij"), -1)
+    xyz = np.stack([np.sin(grid[..., 0]) * np.cos(grid[..., 1]), np.sin(grid[..., 0]) * np.sin(grid[..., 1]),
+                    np.cos(grid[..., 0])], -1)
+    uv = np.stack([grid[..., 1] / (2 * np.pi), grid[..., 0] / np.pi], -1)
+    quads = [((i, j), (i + 1, j), (i + 1, j + 1), (i, j + 1)) for i in range(n_lat) for j in range(n_lon)]
+    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    verts = np.array([xyz[p] for t in tris for p in t])
+    tex = np.array([uv[p] for t in tris for p in t])
+    faces = np.arange(len(verts)).reshape(-1, 3)
+    return verts, faces, tex
+
+
+@requires_libero
+def test_a_simplified_mesh_keeps_its_shape_normals_and_texture():
+    from pivla.envs.libero._meshes import simplify_mesh
+
+    verts, faces, tex = _sphere_soup()
+    drawn = simplify_mesh(verts, faces, tex, faces, max_faces=600)
+    assert 500 <= drawn.n_faces <= 600 < len(faces)
+    assert len(drawn.verts) == len(drawn.normals) == len(drawn.texcoords) == 3 * drawn.n_faces
+    assert np.abs(np.linalg.norm(drawn.verts, axis=1) - 1).max() < 0.05  # still the sphere
+    centres = drawn.verts.reshape(-1, 3, 3).mean(1)
+    assert np.allclose(np.linalg.norm(drawn.normals, axis=1), 1)
+    assert (np.einsum("ij,ij->i", drawn.normals[::3], centres) > 0.9).mean() > 0.95  # facing outwards
+    # each corner's texture coordinate is that of an original corner close to it
+    ref = tex[np.linalg.norm(verts[None] - drawn.verts[:, None], axis=2).argmin(1)]
+    assert np.median(np.abs(drawn.texcoords - ref).sum(1)) < 0.05
+
+
+def test_mesh_faces_must_be_zero_or_a_real_budget():
+    from pivla.envs.libero.env import LiberoEnvConfig
+
+    with pytest.raises(ValueError, match="mesh_faces must be 0"):
+        LiberoEnvConfig(mesh_faces=50)
+
+
+@requires_libero
+def test_simplified_meshes_draw_the_same_scene_and_leave_physics_alone():
+    """Visual meshes drawn with at most 2000 triangles: the frames of an official state stay within a few grey
+    levels of the full meshes' (they are not the same frames), the model's own mesh arrays, which physics and
+    the expert's rays read, are untouched, and the arm moves alike."""
+    from pivla.envs import make_env
+
+    envs = [make_env("libero", "libero_spatial", 4, image_size=SIZE, mesh_faces=n, seed=0) for n in (0, 2000)]
+    try:
+        first = [env.reset(options={"init_state": 3})[0] for env in envs]
+        for key in ("agentview_rgb", "eye_in_hand_rgb"):
+            diff = np.abs(first[0][key].astype(int) - first[1][key].astype(int))
+            assert 0 < diff.mean() < 3, key
+        full, simplified = (env.robosuite_env.sim.model._model for env in envs)
+        for name in ("mesh_vert", "mesh_normal", "mesh_texcoord", "mesh_face", "mesh_facenum", "mesh_vertnum"):
+            np.testing.assert_array_equal(getattr(full, name), getattr(simplified, name), err_msg=name)
+        action = np.array([0.3, -0.2, 0.1, 0, 0, 0, -1], np.float32)
+        after = [env.step(action)[0] for env in envs]
+        np.testing.assert_array_equal(after[0]["joint_states"], after[1]["joint_states"])
+    finally:
+        for env in envs:
+            env.close()

@@ -36,6 +36,9 @@ class SimBenchConfig:
     """LIBERO: the cameras rendered."""
     reflections: bool = False
     """LIBERO: render reflections (robosuite's default; the policy's envs switch them off)."""
+    mesh_faces: int = 0
+    """LIBERO: draw visual meshes simplified to about this many triangles (0: full meshes); with N > 0 the full
+    meshes are timed too, in the same run, and the speed-up reported."""
     steps: int = 200
     """Environment steps per repeat."""
     repeats: int = 5
@@ -195,25 +198,35 @@ def _libero(cfg: SimBenchConfig) -> dict[str, Any]:
     off), read every 5th step, and without cameras; one env
     exists at a time (each LIBERO process holds ~2 GB); actions are small random deltas, so the arm moves."""
     suite, size = cfg.suite or "libero_spatial", cfg.image_size or 128
-    rng = np.random.default_rng(cfg.seed)
     out: dict[str, Any] = {"env": "libero", "suite": suite, "task": cfg.task, "steps": cfg.steps,
                            "repeats": cfg.repeats, "image_size": size, "cameras": list(cfg.cameras),
                            "reflections": cfg.reflections}
-    for label, kwargs in (("with_cameras", {"render": True}), ("no_cameras", {"render": False})):
+    configs = [("with_cameras", {"render": True, "mesh_faces": cfg.mesh_faces})]
+    if cfg.mesh_faces:
+        configs.append(("with_cameras_full_meshes", {"render": True}))
+    for label, kwargs in (*configs, ("no_cameras", {"render": False})):
         t0 = time.perf_counter()
         env = make_libero(suite, cfg.task, image_size=size, cameras=cfg.cameras, reflections=cfg.reflections,
                           **kwargs)
         create = time.perf_counter() - t0
+        rng = np.random.default_rng(cfg.seed)  # the same actions in every configuration
         try:
             rates, reset = _rate(env, cfg.steps, cfg.repeats, rng)
-            if label == "with_cameras":
+            if label.startswith("with_cameras"):
                 every5, _ = _rate(env, cfg.steps, cfg.repeats, rng, read_every=5)
-                out["steps_per_s_reading_every_5th_step"] = round(statistics.median(every5), 2)
+                out[label.replace("with_cameras", "steps_per_s_reading_every_5th_step")] = round(
+                    statistics.median(every5), 2)
                 if cfg.episodes > 0:
-                    out.update(_expert_rate(env, suite, cfg.task, cfg.episodes))
+                    rate = _expert_rate(env, suite, cfg.task, cfg.episodes)
+                    suffix = label.removeprefix("with_cameras")
+                    out.update({f"{k}{suffix}": v for k, v in rate.items()})
         finally:
             env.close()
         out[f"steps_per_s_{label}"] = round(statistics.median(rates), 2)
         out[f"reset_s_{label}"] = round(reset, 3)
         out[f"create_s_{label}"] = round(create, 2)
+    out["mesh_faces"] = cfg.mesh_faces
+    if cfg.mesh_faces:
+        out["speedup_with_cameras"] = round(out["steps_per_s_with_cameras"]
+                                            / out["steps_per_s_with_cameras_full_meshes"], 2)
     return out

@@ -68,6 +68,9 @@ class CollectConfig:
     """Draw an instruction paraphrase per episode."""
     keep_failures: bool = False
     """Keep failed expert episodes instead of replacing them with new seeds."""
+    libero_mesh_faces: int = 0
+    """LIBERO: draw visual meshes of more triangles simplified to about this many (0: robosuite's full meshes),
+    several times faster on a software renderer; recorded in the dataset, evaluate with the same setting."""
     libero_init: Literal["official", "random"] = "random"
     """LIBERO: scenes sampled (seeded) from the task's placement regions, or the official init states 0, 1, ...
     (which the benchmark evaluates on: demonstrations from them train on the test states)."""
@@ -193,7 +196,7 @@ def _write_libero_task(cfg: CollectConfig, spec: TaskSpec, episodes: list, attem
         "control_hz": 20, "action": {"space": "OSC_POSE deltas", "translation_m_per_unit": 0.05,
                                      "rotation_rad_per_unit": 0.5, "gripper": "-1 open, +1 closed"},
         "seed": cfg.seed, "attempts": attempts, "expert": "scripted, privileged simulator state",
-        "init": cfg.libero_init, "noise": cfg.noise, "miss": cfg.miss,
+        "init": cfg.libero_init, "noise": cfg.noise, "miss": cfg.miss, "mesh_faces": cfg.libero_mesh_faces,
         "init_states": [e.meta["init_state"] for e in episodes],
         "init_seeds": [e.meta["init_seed"] for e in episodes],
     }
@@ -226,6 +229,8 @@ class _PartialTask:
         self.settings = {"suite": cfg.suite, "task": task, "seed": cfg.seed, "image_size": cfg.size,
                          "init": cfg.libero_init, "noise": cfg.noise, "miss": cfg.miss,
                          "keep_failures": cfg.keep_failures}
+        if cfg.libero_mesh_faces:  # absent from full-mesh progress, which older collections wrote without it
+            self.settings["mesh_faces"] = cfg.libero_mesh_faces
 
     def load(self) -> tuple[list[Episode], list[int], int]:
         """(episodes kept, their attempt numbers, attempts made) so far; nothing when the task has not started."""
@@ -264,7 +269,7 @@ def _collect_libero_task(job: tuple[CollectConfig, TaskSpec]) -> tuple[TaskSpec,
         if len(kept) >= wanted or attempts >= budget:
             return spec, kept, attempts
         env = make_env("libero", cfg.suite, task, image_size=cfg.size, render=True, init_state=0,
-                       init=cfg.libero_init)
+                       init=cfg.libero_init, mesh_faces=cfg.libero_mesh_faces)
         actor = RolloutExpert(cfg.suite, task, ExpertConfig(noise=cfg.noise, miss=cfg.miss))
         try:
             while len(kept) < wanted and attempts < budget:

@@ -79,6 +79,11 @@ class LiberoRunConfig:
     """Official init states per task, from 0 (50: the whole protocol)."""
     workers: int = 2
     """Worker processes (each LIBERO process holds ~2 GB)."""
+    mesh_faces: int = 4000
+    """Visual meshes of more triangles are drawn simplified to about this many, in every stage (0: robosuite's
+    full meshes): the frames differ by about one grey level on average and a step reading both cameras runs
+    about twice as fast on a CPU (docs/libero.md, "Speed"); physics, rays and the success check keep the full
+    meshes."""
     max_steps: int | None = None
     """Step limit per episode (default: the suite's, OpenVLA-OFT's 220 / 280 / 300 / 520)."""
 
@@ -107,7 +112,7 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
         demos = CollectConfig(out=str(data), suite=cfg.suite, env="libero", tasks=",".join(missing),
                               episodes=cfg.demos, seed=cfg.seed, workers=cfg.workers,
                               image_size=cfg.train.model.image_size, noise=cfg.noise, miss=cfg.miss,
-                              libero_init="random")
+                              libero_init="random", libero_mesh_faces=cfg.mesh_faces)
         timed("collect", lambda: collect_demos(demos))
     status = run / "status.json"
     if _stage("train", status.exists() and json.loads(status.read_text()).get("done", False)):
@@ -117,7 +122,8 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
     if _stage("validation rollouts", (out / "val_rollouts_eval" / "results.json").exists()):
         timed("validation_rollouts", lambda: validation_rollouts(
             run, rollouts, out / "val_rollouts_eval", cfg.val_episodes, cfg.seed + 1, "ideal", cfg.workers,
-            env="libero", suite=cfg.suite, tasks=cfg.tasks, max_steps=cfg.max_steps, libero_init="random"))
+            env="libero", suite=cfg.suite, tasks=cfg.tasks, max_steps=cfg.max_steps, libero_init="random",
+            libero_mesh_faces=cfg.mesh_faces))
     if _stage("calibrate", (run / "calibration.json").exists()):
         timed("calibrate", lambda: calibrate_on_rollouts(run, rollouts, data, cfg.calibration))
     for name in cfg.executors:
@@ -127,7 +133,8 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
             options = {} if name == "aurd" else {"monitor": cfg.monitor_baselines}
             ec = EvalConfig(policy=str(run), out=str(target), env="libero", suite=cfg.suite, tasks=cfg.tasks,
                             executor=executor_config(name, **options), episodes=cfg.init_states, first_init_state=0,
-                            seed=cfg.seed + 1000, workers=cfg.workers, videos=2, max_steps=cfg.max_steps)
+                            seed=cfg.seed + 1000, workers=cfg.workers, videos=2, max_steps=cfg.max_steps,
+                            libero_mesh_faces=cfg.mesh_faces)
             timed(f"eval_{name}", lambda: evaluate(ec))
     return write_libero_report(out, cfg.suite, timings.times)
 

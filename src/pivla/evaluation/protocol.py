@@ -39,13 +39,13 @@ def recipe(data: str, out: str, seed: int = 0, *, steps: int | None = None, batc
 def validation_rollouts(run: Path, record: Path, results: Path, episodes: int, seed: int, realism: str,
                         workers: int, env: str = "tabletop", suite: str = "pick_place", tasks: str | None = None,
                         max_steps: int | None = None, libero_init: str = "official",
-                        family: bool = False) -> dict:
+                        family: bool = False, libero_mesh_faces: int = 0) -> dict:
     """Run the policy with fixed horizon on validation seeds and record every rollout into ``record``: the
     validation family's in-distribution episodes with ``family`` (twin), else the legacy ``seed`` (LIBERO:
     ``libero_init="random"`` plays sampled scenes, not the official init states)."""
     ec = EvalConfig(policy=str(run), out=str(results), env=env, suite=suite, tasks=tasks, executor=FixedConfig(),
                     episodes=episodes, seed=seed, realism=realism, workers=workers, videos=0, max_steps=max_steps,
-                    record=str(record), split="validation", libero_init=libero_init,
+                    record=str(record), split="validation", libero_init=libero_init, libero_mesh_faces=libero_mesh_faces,
                     seed_family="validation" if family else None, condition="in_distribution" if family else None)
     return evaluate(ec, progress=False)
 

@@ -83,6 +83,9 @@ class EvalConfig:
     """Also write every rollout (with success and rewards) into this dataset directory."""
     first_init_state: int = 0
     """LIBERO: episode e starts from official init state first_init_state + e (mod 50), whatever the worker."""
+    libero_mesh_faces: int = 0
+    """LIBERO: draw visual meshes of more triangles simplified to about this many (0: robosuite's full meshes);
+    evaluate a policy with the setting its demonstrations were rendered with (``mesh_faces`` in their env_args)."""
     libero_init: Literal["official", "random"] = "official"
     """LIBERO: official init states (the benchmark's protocol), or scenes sampled from the task's placement
     regions with the episode's seed (validation rollouts, which must not reuse the official states)."""
@@ -145,6 +148,8 @@ def _env(task_index: int) -> Any:
         kw: dict[str, Any] = {"image_size": policy.spec.image_size, "cameras": tuple(policy.spec.cameras)}
         if cfg.env == "tabletop":
             kw.update(realism=cfg.realism, perturb=cfg.perturb)
+        elif cfg.libero_mesh_faces:
+            kw.update(mesh_faces=cfg.libero_mesh_faces)
         _STATE["envs"][task_index] = make_env(cfg.env, cfg.suite, task_index, **kw)
     return _STATE["envs"][task_index]
 

@@ -33,8 +33,10 @@ def libero() -> SimpleNamespace:
     logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
     try:
         with contextlib.redirect_stdout(io.StringIO()):
+            import fast_simplification
             import mujoco
             import robosuite.utils.transform_utils as transform_utils
+            import scipy.spatial
             from libero.libero import benchmark, get_libero_path
             from libero.libero.envs import bddl_utils
             from libero.libero.envs.env_wrapper import ControlEnv
@@ -47,6 +49,8 @@ def libero() -> SimpleNamespace:
         ControlEnv=ControlEnv,
         mujoco=mujoco,
         T=transform_utils,
+        fast_simplification=fast_simplification,
+        scipy_spatial=scipy.spatial,
     )
     return _modules
 

@@ -34,6 +34,7 @@ import gymnasium as gym
 import numpy as np
 
 from pivla.envs import TaskSpec
+from pivla.envs.libero import _meshes
 from pivla.envs.libero._backend import libero
 
 # Our observation key -> robosuite camera name.
@@ -170,6 +171,9 @@ class LiberoEnvConfig:
     binarize_gripper: bool = True  # gripper command > 0 closes, otherwise opens (as in OpenVLA-OFT's eval)
     reflections: bool = False  # reflections cost ~25% of a frame and add nothing a policy needs
     shadows: bool = True  # switching them off measured no faster on llvmpipe (docs/libero.md, Speed)
+    # 0: robosuite's visual meshes as they are; N: meshes of more triangles drawn simplified to about N (the
+    # renderer's copy only: physics, rays and the success check keep the full meshes; envs.libero._meshes)
+    mesh_faces: int = 0
     init: str = "official"  # reset without options: "official" (next official state) or "random" (seeded sample)
 
     def __post_init__(self) -> None:
@@ -182,6 +186,8 @@ class LiberoEnvConfig:
             raise ValueError(f"image_size must be >= 8, got {self.image_size}")
         if self.settle_steps < 0:
             raise ValueError(f"settle_steps must be >= 0, got {self.settle_steps}")
+        if self.mesh_faces < 0 or 0 < self.mesh_faces < 100:
+            raise ValueError(f"mesh_faces must be 0 (full meshes) or at least 100, got {self.mesh_faces}")
 
 
 class LiberoEnv(gym.Env):
@@ -224,6 +230,8 @@ class LiberoEnv(gym.Env):
         built = lib.mujoco.MjModel.from_xml_string(self._env.env.model.get_xml())  # before any placement
         self._built_pose = (built.body_pos.copy(), built.body_quat.copy())
         self._cams = cams
+        self._drawn: dict[int, _meshes.DrawnMesh] | None = None  # simplified meshes (config.mesh_faces)
+        self._drawn_in: Any = None  # the rendering context they were uploaded to
         self._t = 0
         self.episode_id = 0  # incremented by every reset, so stateful actors notice a new episode
         self._last_raw: dict[str, np.ndarray] | None = None
@@ -259,6 +267,13 @@ class LiberoEnv(gym.Env):
             flags = libero().mujoco.mjtRndFlag
             ctx.scn.flags[flags.mjRND_REFLECTION] = int(self.config.reflections)
             ctx.scn.flags[flags.mjRND_SHADOW] = int(self.config.shadows)
+            if self.config.mesh_faces and ctx.con is not self._drawn_in:  # once per rendering context
+                model = self._env.sim.model._model
+                if self._drawn is None:
+                    self._drawn = _meshes.simplified_meshes(model, self.config.mesh_faces)
+                ctx.gl_ctx.make_current()
+                _meshes.upload(model, ctx.con, self._drawn)
+                self._drawn_in = ctx.con
 
     def _render(self, key: str, frame: tuple[int, int]) -> np.ndarray:
         """One camera's image of the current state: the frame robosuite's camera observable would give
@@ -267,6 +282,10 @@ class LiberoEnv(gym.Env):
         if frame != (self.episode_id, self._t):
             raise RuntimeError(f"{key} was read after the env moved on: the frame would show a later state")
         s = self.config.image_size
+        # robosuite renders in whichever GL context is current, which is the last one created or used: with
+        # several envs in a process (an evaluation worker keeps one per task) that may be another env's, whose
+        # meshes and buffers this env's drawing would then use.
+        self._env.sim._render_context_offscreen.gl_ctx.make_current()
         return np.ascontiguousarray(self._env.sim.render(camera_name=CAMERAS[key], width=s, height=s)[::-1])
 
     def _obs(self, raw: dict[str, np.ndarray]) -> Observation:
