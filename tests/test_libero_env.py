@@ -414,3 +414,21 @@ def test_simplified_meshes_draw_the_same_scene_and_leave_physics_alone():
     finally:
         for env in envs:
             env.close()
+
+
+@requires_libero
+def test_an_evaluation_worker_keeps_one_libero_env(synthetic_data, tmp_path, monkeypatch):
+    """Jobs come task after task: moving to the next task closes the env of the one before (each holds ~1 GB)."""
+    from pivla.evaluation import runner
+    from pivla.training.trainer import train
+    from tests.conftest import tiny_train_config
+
+    run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, val_fraction=0.0))
+    cfg = runner.EvalConfig(policy=str(run), out=str(tmp_path / "eval"), env="libero", suite="libero_spatial")
+    monkeypatch.setattr(runner, "_STATE", {})
+    runner._init_worker(cfg, 1)
+    first = runner._env(0)
+    assert runner._env(0) is first
+    second = runner._env(1)
+    assert list(runner._STATE["envs"]) == [1] and first._env is None  # closed
+    second.close()
