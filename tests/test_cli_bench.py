@@ -20,11 +20,12 @@ def test_bench_control_json(capsys):
     assert not any(k.startswith("loop_") for k in out)
 
 
-def test_bench_train_json_for_both_token_layouts(capsys):
-    for extra in ([], ["--grid-tokens"]):
+def test_bench_train_json_for_both_token_layouts_and_the_libero_preset(capsys):
+    for extra in ([], ["--grid-tokens"], ["--preset", "libero"]):
         assert main(["bench", "train", "--steps", "4", "--batch-size", "2", "--threads", "1", "--json", *extra]) == 0
         out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-        assert out["grid_tokens"] is bool(extra) and out["samples_per_s"] > 0
+        assert out["grid_tokens"] is ("--grid-tokens" in extra) and out["samples_per_s"] > 0
+        assert (out["image_size"], out["cameras"]) == ((128, 2) if "--preset" in extra else (80, 2))
 
 
 def test_bench_data_json(capsys, synthetic_data):
