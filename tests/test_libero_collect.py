@@ -178,3 +178,18 @@ def test_a_worker_whose_run_was_killed_stops(monkeypatch):
         collect._stop_if_orphaned()
     monkeypatch.setattr(collect.mp, "parent_process", lambda: None)  # no pool: the run itself
     collect._stop_if_orphaned()
+
+
+def test_a_run_refuses_demonstrations_drawn_with_other_meshes(tmp_path):
+    """Demonstrations drawn with full meshes (or before the setting existed) and a run that would validate and
+    evaluate on simplified ones: refused, naming the file and both settings."""
+    from pivla.data.format import write_episodes
+    from pivla.data.synthetic import synthetic_episode
+    from pivla.evaluation.libero import check_rendering
+
+    episode = synthetic_episode(np.random.default_rng(0), "left", T=3, size=8)
+    write_episodes(tmp_path / "a_demo.hdf5", [episode], {"env": "libero", "mesh_faces": 4000})
+    check_rendering(tmp_path, 4000)
+    write_episodes(tmp_path / "b_demo.hdf5", [episode], {"env": "libero"})
+    with pytest.raises(ValueError, match="b_demo.hdf5 was rendered with mesh_faces=0 and this run asks for 4000"):
+        check_rendering(tmp_path, 4000)

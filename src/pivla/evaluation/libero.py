@@ -23,6 +23,7 @@ from pathlib import Path
 
 from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
+from pivla.data.format import read_env_meta
 from pivla.envs import select_tasks
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.evaluation.protocol import calibrate_on_rollouts, validation_rollouts
@@ -97,6 +98,16 @@ def _collected(data: Path, n_tasks: int) -> bool:
     return data.is_dir() and len(list(data.glob("*_demo.hdf5"))) >= n_tasks
 
 
+def check_rendering(data: Path, mesh_faces: int) -> None:
+    """Refuse to go on when the demonstrations were drawn with other meshes than the run's: its validation and
+    evaluation frames would not look like the frames the policy learnt from."""
+    for path in sorted(data.glob("*_demo.hdf5")):
+        drawn = read_env_meta(path).get("mesh_faces", 0)  # collections before the setting drew full meshes
+        if drawn != mesh_faces:
+            raise ValueError(f"{path} was rendered with mesh_faces={drawn} and this run asks for {mesh_faces}: "
+                             f"run with --mesh-faces {drawn}, or collect again into another --out")
+
+
 def run_libero(cfg: LiberoRunConfig) -> Path:
     """Run (or resume) every stage; returns the path of libero.md."""
     out = Path(cfg.out)
@@ -114,6 +125,7 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
                               image_size=cfg.train.model.image_size, noise=cfg.noise, miss=cfg.miss,
                               libero_init="random", libero_mesh_faces=cfg.mesh_faces)
         timed("collect", lambda: collect_demos(demos))
+    check_rendering(data, cfg.mesh_faces)
     status = run / "status.json"
     if _stage("train", status.exists() and json.loads(status.read_text()).get("done", False)):
         tc = dataclasses.replace(cfg.train, data=str(data), out=str(run), seed=cfg.seed, progress=False)
