@@ -82,7 +82,8 @@ def exclusive_lock(path: str | Path, what: str) -> Iterator[None]:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise RuntimeError(f"{path} is being written by another {what}; wait for it to finish, stop it, or write elsewhere") from None
+            raise RuntimeError(f"{path} is being written by another {what}; wait for it to finish, stop it, "
+                               "or write elsewhere") from None
         yield
 
 

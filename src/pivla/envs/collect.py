@@ -70,7 +70,7 @@ class CollectConfig:
     """Keep failed expert episodes instead of replacing them with new seeds."""
     libero_mesh_faces: int = 0
     """LIBERO: draw visual meshes of more triangles simplified to about this many (0: robosuite's full meshes),
-    several times faster on a software renderer; recorded in the dataset, evaluate with the same setting."""
+    about twice the steps/s on a software renderer; recorded in the dataset, evaluate with the same setting."""
     libero_init: Literal["official", "random"] = "random"
     """LIBERO: scenes sampled (seeded) from the task's placement regions, or the official init states 0, 1, ...
     (which the benchmark evaluates on: demonstrations from them train on the test states)."""

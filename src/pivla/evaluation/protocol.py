@@ -45,8 +45,9 @@ def validation_rollouts(run: Path, record: Path, results: Path, episodes: int, s
     ``libero_init="random"`` plays sampled scenes, not the official init states)."""
     ec = EvalConfig(policy=str(run), out=str(results), env=env, suite=suite, tasks=tasks, executor=FixedConfig(),
                     episodes=episodes, seed=seed, realism=realism, workers=workers, videos=0, max_steps=max_steps,
-                    record=str(record), split="validation", libero_init=libero_init, libero_mesh_faces=libero_mesh_faces,
-                    seed_family="validation" if family else None, condition="in_distribution" if family else None)
+                    record=str(record), split="validation", libero_init=libero_init,
+                    libero_mesh_faces=libero_mesh_faces, seed_family="validation" if family else None,
+                    condition="in_distribution" if family else None)
     return evaluate(ec, progress=False)
 
 

@@ -283,8 +283,8 @@ class LiberoEnv(gym.Env):
             raise RuntimeError(f"{key} was read after the env moved on: the frame would show a later state")
         s = self.config.image_size
         # robosuite renders in whichever GL context is current, which is the last one created or used: with
-        # several envs in a process (an evaluation worker keeps one per task) that may be another env's, whose
-        # meshes and buffers this env's drawing would then use.
+        # several envs in a process that may be another env's, whose meshes and buffers this env's drawing
+        # would then use.
         self._env.sim._render_context_offscreen.gl_ctx.make_current()
         return np.ascontiguousarray(self._env.sim.render(camera_name=CAMERAS[key], width=s, height=s)[::-1])
 
