@@ -135,16 +135,21 @@ def _children(pid: int) -> set[int]:
 def test_kill_ends_a_collection_with_its_workers(tmp_path):
     """``kill`` on a running ``pivla collect --workers 2`` ends its worker processes too: left running, they
     would go on playing episodes for nobody (on LIBERO, a whole task each) beside the rerun that resumes it."""
-    proc = subprocess.Popen([sys.executable, "-m", "pivla", "collect", "--suite", "pick_place", "--episodes", "50",
+    # 9 x 2000 episodes: hours of work, so the run is still going when it is killed (450 took 21 s here)
+    proc = subprocess.Popen([sys.executable, "-m", "pivla", "collect", "--suite", "pick_place", "--episodes", "2000",
                              "--workers", "2", "--out", str(tmp_path / "data")],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 120
-    while len(workers := _children(proc.pid)) < 3 and time.monotonic() < deadline:  # 2 workers + resource tracker
-        time.sleep(0.5)
-    assert len(workers) >= 3, proc.stderr.read().decode()[-2000:] if proc.poll() is not None else workers
-    time.sleep(3)  # the workers are playing episodes
-    proc.send_signal(signal.SIGTERM)
-    assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    try:
+        deadline = time.monotonic() + 120
+        while len(workers := _children(proc.pid)) < 3 and time.monotonic() < deadline:  # 2 workers + tracker
+            time.sleep(0.5)
+        assert len(workers) >= 3, proc.stderr.read().decode()[-2000:] if proc.poll() is not None else workers
+        time.sleep(3)  # the workers are playing episodes
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    finally:
+        if proc.poll() is None:
+            proc.kill()
     deadline = time.monotonic() + 20
     while any(Path(f"/proc/{w}").exists() for w in workers) and time.monotonic() < deadline:
         time.sleep(0.2)
