@@ -29,11 +29,17 @@ def test_comparisons_pair_episodes_within_each_seed_and_pool_the_seeds(tmp_path)
     _write_eval(tmp_path, 1, "main", "in_distribution", "fixed", [0, 0, 1])
     res = Results(tmp_path)
     c = res.compare(("main", "in_distribution", "aurd"), ("main", "in_distribution", "fixed"))
-    assert (c["n"], c["b"], c["c"]) == (7, 3, 1)
+    assert (c["n"], c["only_a"], c["only_b"]) == (7, 3, 1)
     assert c["diff"] == pytest.approx(2 / 7) and c["p_mcnemar"] == pytest.approx(0.625)
     rate = res.rate("main", "in_distribution", "aurd")
     assert (rate["successes"], rate["episodes"]) == (5, 7)
     assert res.compare(("main", "in_distribution", "aurd"), ("main", "unseen_env", "fixed")) is None  # not run
+    # benchmark.json names both sides of every comparison beside its counts
+    atomic_write_json(tmp_path / "benchmark_config.json", dataclasses.asdict(BenchmarkConfig(out=str(tmp_path))))
+    benchmark.write_benchmark_report(tmp_path)
+    records = json.loads((tmp_path / "benchmark.json").read_text())["comparisons"]
+    assert [(r["a"], r["b"], r["only_a"], r["only_b"]) for r in records if r["table"] == "headline"] == [
+        (["main", "in_distribution", "aurd"], ["main", "in_distribution", "fixed"], 3, 1)]
 
 
 def test_a_report_of_a_run_stopped_early_draws_no_empty_figures(tmp_path):

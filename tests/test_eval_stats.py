@@ -108,15 +108,15 @@ def test_paired_difference_edge_cases():
 def test_compare_reports_the_table_the_interval_and_the_test():
     a, b = _outcomes(5, 3, 1, 1)
     out = compare(a, b)
-    assert {k: out[k] for k in ("n", "successes_a", "successes_b", "b", "c")} == {
-        "n": 10, "successes_a": 8, "successes_b": 6, "b": 3, "c": 1}
+    assert {k: out[k] for k in ("n", "successes_a", "successes_b", "only_a", "only_b")} == {
+        "n": 10, "successes_a": 8, "successes_b": 6, "only_a": 3, "only_b": 1}
     assert out["diff"] == pytest.approx(0.2)
     assert out["ci95"] == pytest.approx([-0.186962, 0.521086], abs=2e-6)
     assert out["p_mcnemar"] == pytest.approx(0.625)  # b = 3, c = 1: 2 * (1 + 4) / 16
     reverse = compare(b, a)
     assert reverse["diff"] == pytest.approx(-0.2) and reverse["ci95"] == pytest.approx([-0.521086, 0.186962], abs=2e-6)
     assert compare([1, 1, 1], [1, 1, 1]) | {"ci95": None} == {
-        "n": 3, "successes_a": 3, "successes_b": 3, "b": 0, "c": 0, "diff": 0.0, "ci95": None, "p_mcnemar": 1.0}
+        "n": 3, "successes_a": 3, "successes_b": 3, "only_a": 0, "only_b": 0, "diff": 0.0, "ci95": None, "p_mcnemar": 1.0}
 
 
 def test_paired_successes_aligns_rows_and_refuses_other_episodes():

@@ -206,7 +206,7 @@ def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None 
     for key, cmp in report["paired"].items():
         lo, hi = cmp["ci95"]
         lines.append(f"- {key.replace('_', ' ')}: {cmp['successes_a']} / {cmp['successes_b']} of {cmp['n']} paired "
-                     f"episodes ({cmp['b']} / {cmp['c']} discordant), {100 * cmp['diff']:+.1f} points "
+                     f"episodes ({cmp['only_a']} / {cmp['only_b']} discordant), {100 * cmp['diff']:+.1f} points "
                      f"[{100 * lo:+.1f}, {100 * hi:+.1f}] (Newcombe paired), exact McNemar p {cmp['p_mcnemar']:.3g}")
     for n in names:
         fp = results[n].get("failure_prediction") or {}

@@ -112,13 +112,14 @@ def paired_difference(a: Sequence[bool] | np.ndarray, b: Sequence[bool] | np.nda
 
 
 def compare(a: Sequence[bool] | np.ndarray, b: Sequence[bool] | np.ndarray) -> dict:
-    """Executor A against B on the same episodes: ``n``, ``successes_a``, ``successes_b``, ``b`` (episodes only A
-    solved), ``c`` (only B), ``diff`` (p_A - p_B), ``ci95`` (Newcombe's paired interval) and ``p_mcnemar``."""
+    """Executor A against B on the same episodes: ``n``, ``successes_a``, ``successes_b``, ``only_a`` (episodes
+    only A solved; McNemar's b), ``only_b`` (only B; McNemar's c), ``diff`` (p_A - p_B), ``ci95`` (Newcombe's
+    paired interval) and ``p_mcnemar``."""
     a, b = _outcomes(a, b)
     only_a, only_b = int(np.sum(a & ~b)), int(np.sum(~a & b))
     diff, lo, hi = paired_difference(a, b)
-    return {"n": len(a), "successes_a": int(a.sum()), "successes_b": int(b.sum()), "b": only_a, "c": only_b,
-            "diff": diff, "ci95": [lo, hi], "p_mcnemar": mcnemar_exact(only_a, only_b)}
+    return {"n": len(a), "successes_a": int(a.sum()), "successes_b": int(b.sum()), "only_a": only_a,
+            "only_b": only_b, "diff": diff, "ci95": [lo, hi], "p_mcnemar": mcnemar_exact(only_a, only_b)}
 
 
 def paired_successes(rows_a: list[dict], rows_b: list[dict]) -> tuple[np.ndarray, np.ndarray]:
