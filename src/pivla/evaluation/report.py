@@ -170,7 +170,7 @@ def write_report(root: str | Path) -> Path:
                                             load_rows(evals[(c, e)] / "episodes.jsonl")))
             lo, hi = cmp["ci95"]
             lines.append(f"| {c} | {e} | {cmp['successes_a']}/{cmp['n']} | {cmp['successes_b']}/{cmp['n']} | "
-                         f"{cmp['b']} | {cmp['c']} | {100 * cmp['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] | "
+                         f"{cmp['only_a']} | {cmp['only_b']} | {100 * cmp['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] | "
                          f"{cmp['p_mcnemar']:.3g} |")
     lines += ["", "## Execution statistics", "", "| condition | executor | mean horizon | replans | prunes | pauses | plans | control Hz |",
               "|---|---|---|---|---|---|---|---|"]
