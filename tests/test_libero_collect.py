@@ -41,7 +41,7 @@ def test_collect_one_libero_episode(tmp_path):
     from pivla.data.datasets import read_dataset
 
     code = main(["collect", "--env", "libero", "--suite", "libero_spatial", "--tasks", "5", "--episodes", "1",
-                 "--out", str(tmp_path), "--image-size", "32"])
+                 "--out", str(tmp_path), "--image-size", "32", "--libero-step-factor", "1.5"])
     assert code == 0
     (path,) = tmp_path.glob("*.hdf5")
     assert path.name == "pick_up_the_black_bowl_on_the_ramekin_and_place_it_on_the_plate_demo.hdf5"
@@ -61,6 +61,7 @@ def test_collect_one_libero_episode(tmp_path):
     with h5py.File(path) as f:
         meta = json.loads(f["data"].attrs["env_args"])
     assert meta["env"] == "libero" and meta["task_index"] == 5 and meta["attempts"] == 1
+    assert meta["max_steps"] == 220 and meta["collect_max_steps"] == 330  # the policy's limit, the expert's
     assert meta["init"] == "random" and meta["init_states"] == [None] and meta["init_seeds"] == [ep.meta["init_seed"]]
 
 
@@ -91,6 +92,8 @@ def test_libero_run_end_to_end_on_one_task(tmp_path):
         assert sorted(r["init_state"] for r in rows) == [0, 1]
     data = json.loads((tmp_path / "run" / "libero.json").read_text())
     assert data["paired"]["aurd_vs_fixed"]["n"] == 2 and "Published figures" in report.read_text()
+    assert data["demonstrations"][demo.meta["task"]]["episodes"] == 1  # the task's row says what it learnt from
+    assert "Wall time: collect" in report.read_text()
     stages = {"collect", "train", "validation_rollouts", "calibrate", "eval_fixed", "eval_aurd"}
     assert set(data["timings_s"]) == stages and all(t > 0 for t in data["timings_s"].values())
     mtime = (tmp_path / "run" / "policy" / "model.safetensors").stat().st_mtime_ns
@@ -148,6 +151,34 @@ def test_an_unfinished_task_with_other_settings_is_refused(tmp_path):
     with pytest.raises(ValueError, match="unfinished collection with other settings"):
         partial.load()
     assert (partial.dir / "progress.json").exists()
+
+
+def test_demonstrations_get_the_step_factor_times_the_suite_limit(tmp_path, monkeypatch):
+    """The expert collects under ``libero_step_factor`` times the suite's limit; a task begun at another limit is
+    not continued under this one (its attempts would have ended elsewhere)."""
+    from pivla.envs import TaskSpec, collect
+    from pivla.io import atomic_write_json
+
+    seen: dict = {}
+
+    def env_seen(*args, **kwargs):
+        seen.update(kwargs)
+        raise RuntimeError("env made")
+
+    monkeypatch.setattr(collect, "make_env", env_seen)
+    spec = TaskSpec(suite="libero_goal", index=3, name="task3", instruction="put it inside", max_steps=300)
+    cfg = collect.CollectConfig(out=str(tmp_path), env="libero", suite="libero_goal", episodes=2, libero_step_factor=1.5)
+    with pytest.raises(RuntimeError, match="env made"):
+        collect._collect_libero_task((cfg, spec))
+    assert seen["max_steps"] == 450
+    at_limit = collect._PartialTask(collect.CollectConfig(out=str(tmp_path), env="libero", suite="libero_goal"), 3,
+                                    spec.name)
+    atomic_write_json(at_limit.dir / "progress.json", {"settings": at_limit.settings, "attempts": 3, "kept": []})
+    with pytest.raises(ValueError, match="unfinished collection with other settings"):
+        collect._collect_libero_task((cfg, spec))
+    with pytest.raises(ValueError, match="libero_step_factor must be >= 1"):
+        collect.collect_demos(collect.CollectConfig(out=str(tmp_path), env="libero", suite="libero_goal",
+                                                    libero_step_factor=0.5))
 
 
 def test_a_task_being_collected_by_another_process_is_refused(tmp_path):

@@ -74,6 +74,10 @@ class CollectConfig:
     libero_init: Literal["official", "random"] = "random"
     """LIBERO: scenes sampled (seeded) from the task's placement regions, or the official init states 0, 1, ...
     (which the benchmark evaluates on: demonstrations from them train on the test states)."""
+    libero_step_factor: float = 1.0
+    """LIBERO: the expert's step limit per demonstration, as a multiple of the suite's evaluation limit. DART
+    noise and a missed grasp slow the executed motion, not the clean labels a policy learns, so the longest
+    tasks' noisy demonstrations need more than the limit a policy is evaluated with."""
 
     @property
     def size(self) -> int:
@@ -84,6 +88,8 @@ def collect_demos(cfg: CollectConfig) -> int:
     """Collect, write one file per task; returns 0, or 1 when a task got fewer successful episodes than asked."""
     if cfg.episodes < 1:
         raise ValueError("episodes must be >= 1")
+    if cfg.libero_step_factor < 1.0:
+        raise ValueError(f"libero_step_factor must be >= 1 (the evaluation limit at least), got {cfg.libero_step_factor}")
     if cfg.env == "libero":
         return _collect_libero(cfg)
     # The twin is imported only when it collects: its import sets the process's MuJoCo rendering variables.
@@ -197,6 +203,7 @@ def _write_libero_task(cfg: CollectConfig, spec: TaskSpec, episodes: list, attem
                                      "rotation_rad_per_unit": 0.5, "gripper": "-1 open, +1 closed"},
         "seed": cfg.seed, "attempts": attempts, "expert": "scripted, privileged simulator state",
         "init": cfg.libero_init, "noise": cfg.noise, "miss": cfg.miss, "mesh_faces": cfg.libero_mesh_faces,
+        "collect_max_steps": _collect_limit(cfg, spec),
         "init_states": [e.meta["init_state"] for e in episodes],
         "init_seeds": [e.meta["init_seed"] for e in episodes],
     }
@@ -231,6 +238,8 @@ class _PartialTask:
                          "keep_failures": cfg.keep_failures}
         if cfg.libero_mesh_faces:  # absent from full-mesh progress, which older collections wrote without it
             self.settings["mesh_faces"] = cfg.libero_mesh_faces
+        if cfg.libero_step_factor != 1.0:  # likewise absent from collections at the evaluation limit
+            self.settings["step_factor"] = cfg.libero_step_factor
 
     def load(self) -> tuple[list[Episode], list[int], int]:
         """(episodes kept, their attempt numbers, attempts made) so far; nothing when the task has not started."""
@@ -253,6 +262,11 @@ class _PartialTask:
                           {"settings": self.settings, "attempts": attempt + 1, "kept": kept})
 
 
+def _collect_limit(cfg: CollectConfig, spec: TaskSpec) -> int:
+    """The expert's step limit for one LIBERO task's demonstrations."""
+    return round(cfg.libero_step_factor * spec.max_steps)
+
+
 def _collect_libero_task(job: tuple[CollectConfig, TaskSpec]) -> tuple[TaskSpec, list, int]:
     """(task, episodes kept, attempts) for one LIBERO task; runs in a worker process when ``workers > 1``. Attempt
     ``k`` plays the scene sampled with seed (seed, task, k), or official init state ``k`` (mod 50). Progress is
@@ -269,7 +283,7 @@ def _collect_libero_task(job: tuple[CollectConfig, TaskSpec]) -> tuple[TaskSpec,
         if len(kept) >= wanted or attempts >= budget:
             return spec, kept, attempts
         env = make_env("libero", cfg.suite, task, image_size=cfg.size, render=True, init_state=0,
-                       init=cfg.libero_init, mesh_faces=cfg.libero_mesh_faces)
+                       init=cfg.libero_init, mesh_faces=cfg.libero_mesh_faces, max_steps=_collect_limit(cfg, spec))
         actor = RolloutExpert(cfg.suite, task, ExpertConfig(noise=cfg.noise, miss=cfg.miss))
         try:
             while len(kept) < wanted and attempts < budget:

@@ -22,7 +22,7 @@ from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import ExecutorConfig, executor_config
 from pivla.evaluation.protocol import calibrate_on_rollouts, validation_rollouts
 from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
-from pivla.evaluation.stats import compare, paired_successes, wilson_interval
+from pivla.evaluation.stats import compare, format_difference, paired_successes, percent_interval, wilson_interval
 from pivla.io import atomic_write_bytes
 from pivla.training.config import TrainConfig, check_target_divides
 from pivla.training.trainer import train
@@ -128,8 +128,7 @@ def _evaluate(cfg: AblationConfig, run: Path, name: str, executor: ExecutorConfi
 
 
 def _rate(r: dict) -> str:
-    lo, hi = wilson_interval(r["successes"], r["episodes"])
-    return f"{100 * r['success_rate']:.1f}% [{100 * lo:.1f}, {100 * hi:.1f}]"
+    return f"{100 * r['success_rate']:.1f}% {percent_interval(*wilson_interval(r['successes'], r['episodes']))}"
 
 
 def _diff(r: dict, ref: dict | None) -> str:
@@ -139,12 +138,6 @@ def _diff(r: dict, ref: dict | None) -> str:
         return ""
     return format_difference(compare(*paired_successes(load_rows(Path(r["dir"]) / "episodes.jsonl"),
                                                        load_rows(Path(ref["dir"]) / "episodes.jsonl"))))
-
-
-def format_difference(cmp: dict) -> str:
-    """A paired comparison (``stats.compare``) as points with its 95% interval and McNemar p."""
-    lo, hi = cmp["ci95"]
-    return f"{100 * cmp['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] (p {cmp['p_mcnemar']:.2g})"
 
 
 def _model_row(name: str, aurd: dict, fixed: dict, ref: dict | None) -> str:

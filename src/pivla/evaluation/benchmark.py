@@ -40,7 +40,7 @@ from pivla.data.format import read_env_meta, read_episodes, write_episodes
 from pivla.envs import select_tasks
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.envs.tabletop.perturb import EVENT_LEVELS_CM
-from pivla.evaluation.ablate import INCREMENTAL, TRAIN_VARIANTS, format_difference
+from pivla.evaluation.ablate import INCREMENTAL, TRAIN_VARIANTS
 from pivla.evaluation.protocol import (
     calibrate_on_rollouts,
     calibration_episodes,
@@ -48,7 +48,7 @@ from pivla.evaluation.protocol import (
 )
 from pivla.evaluation.report import new_figure, save_figure
 from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
-from pivla.evaluation.stats import compare, paired_successes, wilson_interval
+from pivla.evaluation.stats import compare, format_difference, paired_successes, percent_interval, wilson_interval
 from pivla.evaluation.timing import StageTimes
 from pivla.io import atomic_write_bytes, atomic_write_json
 from pivla.policy import load_policy
@@ -483,8 +483,7 @@ def _fired(row: dict) -> bool:
 def _pct(r: dict | None) -> str:
     if r is None:
         return "not run"
-    lo, hi = r["ci95"]
-    return f"{100 * r['rate']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
+    return f"{100 * r['rate']:.1f} {percent_interval(*r['ci95'])}"
 
 
 def _diff(c: dict | None) -> str:

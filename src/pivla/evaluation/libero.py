@@ -28,7 +28,7 @@ from pivla.envs import select_tasks
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.evaluation.protocol import calibrate_on_rollouts, validation_rollouts
 from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
-from pivla.evaluation.stats import compare, paired_successes, wilson_interval
+from pivla.evaluation.stats import compare, format_difference, paired_successes, percent_interval, wilson_interval
 from pivla.evaluation.timing import StageTimes
 from pivla.io import atomic_write_bytes, atomic_write_json
 from pivla.training.config import TrainConfig, libero_preset
@@ -64,6 +64,10 @@ class LiberoRunConfig:
     """DART: noise on the expert's executed actions, clean labels (as the twin's demo)."""
     miss: float = 0.3
     """Share of demonstrations whose first grasp misses and is recovered (as the twin's demo)."""
+    collect_step_factor: float = 1.5
+    """The expert's step limit while collecting, as a multiple of the suite's (the policy keeps the suite's):
+    with noise and a missed grasp, LIBERO-Goal's longest task fits 300 steps about one time in five and
+    450 about one time in two (docs/experiments.md, "Demonstrations slower than the step limit")."""
     train: TrainConfig = field(default_factory=libero_preset)
     """Training (the recipe at LIBERO's cameras and proprio; data and out are set by the run)."""
     val_episodes: int = 5
@@ -123,7 +127,8 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
         demos = CollectConfig(out=str(data), suite=cfg.suite, env="libero", tasks=",".join(missing),
                               episodes=cfg.demos, seed=cfg.seed, workers=cfg.workers,
                               image_size=cfg.train.model.image_size, noise=cfg.noise, miss=cfg.miss,
-                              libero_init="random", libero_mesh_faces=cfg.mesh_faces)
+                              libero_init="random", libero_mesh_faces=cfg.mesh_faces,
+                              libero_step_factor=cfg.collect_step_factor)
         timed("collect", lambda: collect_demos(demos))
     check_rendering(data, cfg.mesh_faces)
     status = run / "status.json"
@@ -156,23 +161,45 @@ def expert_table(results: dict) -> str:
     95% interval, mean steps and the failed init states (or seeds)."""
     lines = ["| task | success | 95% CI | mean steps | failed |", "|---|---|---|---|---|"]
     for t in results["tasks"]:
-        lo, hi = wilson_interval(t["successes"], t["episodes"])
         failed = ", ".join(str(s) for s in t["failed"]) or "-"
         lines.append(f"| {t['task']} {t['name'].replace('_', ' ')} | {t['successes']} / {t['episodes']} | "
-                     f"[{100 * lo:.1f}, {100 * hi:.1f}] | {t['mean_steps']:.0f} | {failed} |")
-    lo, hi = wilson_interval(results["successes"], results["episodes"])
+                     f"{percent_interval(*wilson_interval(t['successes'], t['episodes']))} | {t['mean_steps']:.0f} | "
+                     f"{failed} |")
     lines.append(f"| **{results['suite']}** | **{results['successes']} / {results['episodes']}** | "
-                 f"[{100 * lo:.1f}, {100 * hi:.1f}] | | |")
+                 f"{percent_interval(*wilson_interval(results['successes'], results['episodes']))} | | |")
     return "\n".join(lines)
 
 
+def demonstrations(data: Path) -> dict[str, dict[str, int]]:
+    """Per task name, the demonstrations its file holds and the expert's attempts that made them: a task whose
+    expert often failed on sampled scenes has fewer than asked for, which its success is read against."""
+    found = {}
+    for path in sorted(data.glob("*_demo.hdf5")):
+        meta = read_env_meta(path)
+        if "task" in meta:
+            found[meta["task"]] = {"episodes": len(meta.get("init_seeds", [])), "attempts": meta.get("attempts", 0)}
+    return found
+
+
+STAGES = ("collect", "train", "validation_rollouts", "calibrate")  # then the evaluations, in the order run
+
+
+def _duration(seconds: float) -> str:
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.0f} min" if seconds >= 60 else f"{seconds:.0f} s"
+
+
 def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None = None) -> Path:
-    """libero.md and libero.json from the evaluations under ``out/eval``."""
+    """libero.md and libero.json from the evaluations under ``out/eval``, the demonstrations under ``out/data``
+    and the stage times."""
     evals = {d.name: d for d in sorted((out / "eval").iterdir()) if (d / "results.json").exists()}
     results = {name: json.loads((d / "results.json").read_text()) for name, d in evals.items()}
     rows = {name: load_rows(d / "episodes.jsonl") for name, d in evals.items()}
+    demos = demonstrations(out / "data")
+    timings = timings or {}
     report: dict = {"suite": suite, "executors": {}, "paired": {}, "published": {k: v.get(suite) for k, v in PUBLISHED.items()},
-                    "timings_s": timings or {}}
+                    "demonstrations": demos, "timings_s": timings}
     for name, res in results.items():
         report["executors"][name] = {
             "success_rate": res["success_rate"], "ci95": res["ci95"], "successes": res["successes"],
@@ -189,30 +216,34 @@ def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None 
     tasks = sorted({t for r in results.values() for t in r["per_task"]})
     lines = [f"# {suite}: official protocol", "",
              "Every official init state of every task, one episode each per executor (paired by init state); "
-             "the policy trained on demonstrations from sampled scenes only. Success with 95% Wilson intervals.", "",
-             "| task | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+             "the policy trained on demonstrations from sampled scenes only (demos: kept of the expert's attempts). "
+             "Success with 95% Wilson intervals.", "",
+             "| task | demos | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
     for t in tasks:
         cells = []
         for n in names:
             pt = results[n]["per_task"].get(t)
             cells.append(f"{100 * pt['success_rate']:.0f}% ({round(pt['success_rate'] * pt['episodes'])}/{pt['episodes']})"
                          if pt else "-")
-        lines.append(f"| {t} | " + " | ".join(cells) + " |")
-    totals = []
-    for n in names:
-        lo, hi = wilson_interval(results[n]["successes"], results[n]["episodes"])
-        totals.append(f"**{100 * results[n]['success_rate']:.1f}%** [{100 * lo:.1f}, {100 * hi:.1f}]")
-    lines += ["| **suite** | " + " | ".join(totals) + " |", ""]
+        d = demos.get(t)
+        kept = f"{d['episodes']} / {d['attempts']}" if d else "-"
+        lines.append(f"| {t} | {kept} | " + " | ".join(cells) + " |")
+    totals = [f"**{100 * results[n]['success_rate']:.1f}%** "
+              f"{percent_interval(*wilson_interval(results[n]['successes'], results[n]['episodes']))}" for n in names]
+    lines += ["| **suite** | | " + " | ".join(totals) + " |", ""]
     for key, cmp in report["paired"].items():
-        lo, hi = cmp["ci95"]
         lines.append(f"- {key.replace('_', ' ')}: {cmp['successes_a']} / {cmp['successes_b']} of {cmp['n']} paired "
-                     f"episodes ({cmp['only_a']} / {cmp['only_b']} discordant), {100 * cmp['diff']:+.1f} points "
-                     f"[{100 * lo:+.1f}, {100 * hi:+.1f}] (Newcombe paired), exact McNemar p {cmp['p_mcnemar']:.3g}")
+                     f"episodes ({cmp['only_a']} / {cmp['only_b']} discordant), {format_difference(cmp, with_p=False)} "
+                     f"points (Newcombe paired), exact McNemar p {cmp['p_mcnemar']:.3g}")
     for n in names:
         fp = results[n].get("failure_prediction") or {}
         if fp.get("auroc_u_max") is not None:
             lines.append(f"- {n}: AUROC of the episode's max U for failure {fp['auroc_u_max']:.2f}, of -min V "
                          f"{fp['auroc_neg_v_min']:.2f}")
+    if timings:
+        order = sorted(timings, key=lambda k: STAGES.index(k) if k in STAGES else len(STAGES))
+        lines.append("- Wall time: " + ", ".join(f"{k.replace('_', ' ')} {_duration(timings[k])}" for k in order)
+                     + f"; {_duration(sum(timings.values()))} in all")
     lines += ["", "Published figures on the same suite: " + ", ".join(
         f"{k} {v}%" for k, v in report["published"].items() if v is not None) + "."]
     path = out / "libero.md"

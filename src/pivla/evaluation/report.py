@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from pivla.evaluation.runner import load_rows
-from pivla.evaluation.stats import compare, paired_successes
+from pivla.evaluation.stats import compare, format_difference, paired_successes
 from pivla.io import atomic_write_bytes
 
 log = logging.getLogger(__name__)
@@ -168,9 +168,8 @@ def write_report(root: str | Path) -> Path:
                 continue
             cmp = compare(*paired_successes(load_rows(evals[(c, "aurd")] / "episodes.jsonl"),
                                             load_rows(evals[(c, e)] / "episodes.jsonl")))
-            lo, hi = cmp["ci95"]
             lines.append(f"| {c} | {e} | {cmp['successes_a']}/{cmp['n']} | {cmp['successes_b']}/{cmp['n']} | "
-                         f"{cmp['only_a']} | {cmp['only_b']} | {100 * cmp['diff']:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] | "
+                         f"{cmp['only_a']} | {cmp['only_b']} | {format_difference(cmp, with_p=False)} | "
                          f"{cmp['p_mcnemar']:.3g} |")
     lines += ["", "## Execution statistics", "", "| condition | executor | mean horizon | replans | prunes | pauses | plans | control Hz |",
               "|---|---|---|---|---|---|---|---|"]

@@ -122,6 +122,19 @@ def compare(a: Sequence[bool] | np.ndarray, b: Sequence[bool] | np.ndarray) -> d
             "only_b": only_b, "diff": diff, "ci95": [lo, hi], "p_mcnemar": mcnemar_exact(only_a, only_b)}
 
 
+def percent_interval(lo: float, hi: float, signed: bool = False) -> str:
+    """An interval of proportions in percent, ``[lo, hi]`` to one decimal; ``signed`` for differences."""
+    spec = "+.1f" if signed else ".1f"
+    return f"[{100 * lo:{spec}}, {100 * hi:{spec}}]"
+
+
+def format_difference(cmp: dict, with_p: bool = True) -> str:
+    """A paired comparison (``compare``) in points with its 95% interval, and McNemar's p unless ``with_p`` is
+    off: the one spelling every report uses."""
+    text = f"{100 * cmp['diff']:+.1f} {percent_interval(*cmp['ci95'], signed=True)}"
+    return f"{text} (p {cmp['p_mcnemar']:.2g})" if with_p else text
+
+
 def paired_successes(rows_a: list[dict], rows_b: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     """Success vectors of two evaluations' episode rows (``episodes.jsonl``), aligned on (task index, episode);
     raises unless both ran exactly the same episodes with the same seeds."""
