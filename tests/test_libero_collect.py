@@ -181,6 +181,29 @@ def test_demonstrations_get_the_step_factor_times_the_suite_limit(tmp_path, monk
                                                     libero_step_factor=0.5))
 
 
+def test_an_episode_runs_to_the_envs_own_limit():
+    """An env made with a longer limit than its task's (LIBERO's collection) runs to its own limit."""
+    from types import SimpleNamespace
+
+    from pivla.envs.rollout import run_episode
+
+    class Env:
+        task = SimpleNamespace(name="t", max_steps=3)
+        max_steps = 7
+        unwrapped = property(lambda self: self)
+
+        def reset(self, seed=None, options=None):
+            self.t = 0
+            return {"state": np.zeros(2)}, {"success": False}
+
+        def step(self, action):
+            self.t += 1
+            return {"state": np.zeros(2)}, 0.0, False, self.t >= self.max_steps, {"success": False}
+
+    episode = run_episode(Env(), lambda obs: np.zeros(7), seed=0)
+    assert len(episode) == 7 and not episode.success
+
+
 def test_a_task_being_collected_by_another_process_is_refused(tmp_path):
     """Two collections of one task (a rerun beside a worker left by a killed run) would interleave their attempt
     files: the second is refused, naming the task, and the first one's progress is untouched."""

@@ -46,7 +46,8 @@ def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None,
     if hasattr(actor, "reset"):
         actor.reset(env, seed)
     task = getattr(env.unwrapped, "task", None)
-    limit = max_steps or getattr(task, "max_steps", None) or 1000
+    # The env's own limit when it has one (a LIBERO env made with another limit than its task's), else the task's.
+    limit = max_steps or getattr(env.unwrapped, "max_steps", None) or getattr(task, "max_steps", None) or 1000
     kept: dict[str, list[np.ndarray]] = {k: [] for k in obs if k != "instruction"} if frames else {}
     actions, rewards, dones = [], [], []
     instruction = obs.get("instruction", "")
