@@ -204,6 +204,57 @@ def test_an_episode_runs_to_the_envs_own_limit():
     assert len(episode) == 7 and not episode.success
 
 
+@requires_libero
+@pytest.mark.slow
+def test_an_unrendered_expert_episode_plays_again_the_same_rendered():
+    """What lets a collection play an attempt without frames first: the same env and seed give the same
+    episode, action for action, rendered or not (~15 s)."""
+    from pivla.envs import make_env
+    from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
+    from pivla.envs.rollout import run_episode
+
+    env = make_env("libero", "libero_spatial", 5, image_size=32, init_state=0, init="random", mesh_faces=4000)
+    actor = RolloutExpert("libero_spatial", 5, ExpertConfig(noise=0.3, miss=1.0))
+    try:
+        probe, rendered = run_episode(env, actor, 11, frames=False), run_episode(env, actor, 11)
+    finally:
+        env.close()
+    assert not probe.obs and rendered.obs["agentview_rgb"].shape[0] == len(rendered)
+    assert probe.success == rendered.success and probe.meta["seed"] == rendered.meta["seed"]
+    np.testing.assert_array_equal(probe.actions, rendered.actions)
+
+
+def test_a_task_that_often_fails_renders_only_its_successes(tmp_path, monkeypatch):
+    """Once more than a fifth of a task's attempts have failed, each attempt is first played without frames and
+    played again, rendered, only when it succeeds: the kept episodes are the same, every one with frames."""
+    from types import SimpleNamespace
+
+    from pivla.data.format import Episode
+    from pivla.envs import TaskSpec, collect
+    from pivla.envs.rollout import episode_seed
+
+    attempt_of = {episode_seed(episode_seed(0, 3), k): k for k in range(100)}
+    calls: list[tuple[int, bool]] = []
+
+    def play(env, actor, seed, frames=True):
+        k = attempt_of[seed]
+        calls.append((k, frames))
+        obs = {"state": np.zeros((2, 3), np.float32)} if frames else {}
+        return Episode(actions=np.zeros((2, 7)), obs=obs, instruction="put it inside", success=k % 2 == 0)
+
+    monkeypatch.setattr(collect, "make_env", lambda *a, **kw: SimpleNamespace(init_state=None, init_seed=1,
+                                                                              close=lambda: None))
+    monkeypatch.setattr(collect, "RolloutExpert", lambda *a, **kw: None)
+    monkeypatch.setattr(collect, "run_episode", play)
+    spec = TaskSpec(suite="libero_goal", index=3, name="task3", instruction="put it inside", max_steps=300)
+    _, kept, attempts = collect._collect_libero_task(
+        (collect.CollectConfig(out=str(tmp_path), env="libero", suite="libero_goal", episodes=10), spec))
+    assert attempts == 19 and len(kept) == 10 and all(ep.obs and ep.success for ep in kept)
+    assert calls[:5] == [(k, True) for k in range(5)]  # too few attempts yet to tell a hard task
+    for k in range(5, 19):
+        assert [c for c in calls if c[0] == k] == ([(k, False), (k, True)] if k % 2 == 0 else [(k, False)])
+
+
 def test_a_task_being_collected_by_another_process_is_refused(tmp_path):
     """Two collections of one task (a rerun beside a worker left by a killed run) would interleave their attempt
     files: the second is refused, naming the task, and the first one's progress is untouched."""

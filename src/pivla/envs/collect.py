@@ -267,6 +267,12 @@ def _collect_limit(cfg: CollectConfig, spec: TaskSpec) -> int:
     return round(cfg.libero_step_factor * spec.max_steps)
 
 
+def _probe_first(attempts: int, kept: int) -> bool:
+    """Whether a task's next attempt is first played without rendering: once more than a fifth of its attempts
+    have failed, skipping the frames of the failures saves more than the unrendered pass costs the successes."""
+    return attempts >= 5 and attempts - kept > attempts / 5
+
+
 def _collect_libero_task(job: tuple[CollectConfig, TaskSpec]) -> tuple[TaskSpec, list, int]:
     """(task, episodes kept, attempts) for one LIBERO task; runs in a worker process when ``workers > 1``. Attempt
     ``k`` plays the scene sampled with seed (seed, task, k), or official init state ``k`` (mod 50). Progress is
@@ -288,7 +294,15 @@ def _collect_libero_task(job: tuple[CollectConfig, TaskSpec]) -> tuple[TaskSpec,
         try:
             while len(kept) < wanted and attempts < budget:
                 _stop_if_orphaned()
-                ep = run_episode(env, actor, episode_seed(episode_seed(cfg.seed, task), attempts))
+                seed = episode_seed(episode_seed(cfg.seed, task), attempts)
+                ep = None
+                if not cfg.keep_failures and _probe_first(attempts, len(kept)):
+                    # The expert reads privileged state, so without frames nothing is rendered (a tenth of the
+                    # time); the same seed plays the same episode again, rendered, only when it succeeds.
+                    probe = run_episode(env, actor, seed, frames=False)
+                    ep = None if probe.success else probe
+                if ep is None:
+                    ep = run_episode(env, actor, seed)
                 ep.meta["init_state"] = env.init_state
                 ep.meta["init_seed"] = env.init_seed
                 keep = ep.success or cfg.keep_failures
