@@ -297,8 +297,8 @@ def _collect_libero_task(job: tuple[CollectConfig, TaskSpec]) -> tuple[TaskSpec,
                 seed = episode_seed(episode_seed(cfg.seed, task), attempts)
                 ep = None
                 if not cfg.keep_failures and _probe_first(attempts, len(kept)):
-                    # The expert reads privileged state, so without frames nothing is rendered (a tenth of the
-                    # time); the same seed plays the same episode again, rendered, only when it succeeds.
+                    # The expert reads privileged state, so without frames nothing is rendered (a fifth of the
+                    # time or less); the same seed plays the same episode again, rendered, only when it succeeds.
                     probe = run_episode(env, actor, seed, frames=False)
                     ep = None if probe.success else probe
                 if ep is None:

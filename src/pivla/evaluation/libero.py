@@ -44,6 +44,7 @@ PUBLISHED = {
     "OpenVLA": {"libero_spatial": 84.7, "libero_object": 88.4, "libero_goal": 79.2, "libero_10": 53.7},
 }
 OFFICIAL_INIT_STATES = 50
+STAGES = ("collect", "train", "validation_rollouts", "calibrate")  # the run's order; the evaluations follow
 
 
 @dataclass
@@ -179,9 +180,6 @@ def demonstrations(data: Path) -> dict[str, dict[str, int]]:
         if "task" in meta:
             found[meta["task"]] = {"episodes": len(meta.get("init_seeds", [])), "attempts": meta.get("attempts", 0)}
     return found
-
-
-STAGES = ("collect", "train", "validation_rollouts", "calibrate")  # then the evaluations, in the order run
 
 
 def _duration(seconds: float) -> str:
