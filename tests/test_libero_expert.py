@@ -213,3 +213,7 @@ def test_expert_success_resumes_from_its_file(tmp_path, capsys):
     lo, hi = wilson_interval(n, 3)
     row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| 7 "))
     assert f"| {n} / 3 | [{100 * lo:.1f}, {100 * hi:.1f}] |" in row
+    short: list[dict] = []  # another step limit: other episodes, run anew and kept beside the first ones
+    expert_success(ExpertEvalConfig(suite="libero_goal", tasks="7", init_states="0", out=str(out), max_steps=20),
+                   short.append)
+    assert len(short) == 1 and short[0]["max_steps"] == 20 and short[0]["steps"] == 20 and not short[0]["success"]

@@ -390,18 +390,20 @@ class ExpertEvalConfig:
     """DART noise on executed actions (the expert's config)."""
     miss: float = 0.0
     """Share of episodes whose first grasp is missed on purpose."""
+    max_steps: int | None = None
+    """Step limit per episode (default: the suite's; `pivla libero run` collects at 1.5 times it)."""
 
 
 def _episode_key(suite: str, task: int, seed: int | None, init_state: int | None, noise: float,
-                 miss: float) -> tuple:
+                 miss: float, max_steps: int | None) -> tuple:
     """What identifies an episode of ``expert_success`` (a sampled scene's seed, or an official init state)."""
     start = ("seed", int(seed)) if seed is not None else ("init", int(init_state))
-    return suite, int(task), *start, float(noise), float(miss)
+    return suite, int(task), *start, float(noise), float(miss), max_steps
 
 
 def _row_key(row: dict) -> tuple:
     return _episode_key(row["suite"], row["task"], row.get("seed"), row.get("init_state"), row.get("noise", 0.0),
-                        row.get("miss", 0.0))
+                        row.get("miss", 0.0), row.get("max_steps"))
 
 
 def _read_rows(path: Path) -> dict[tuple, dict]:
@@ -429,7 +431,7 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
 
     def key(task: int, start: int) -> tuple:
         seed, init_state = (start, None) if seeds is not None else (None, start)
-        return _episode_key(cfg.suite, task, seed, init_state, cfg.noise, cfg.miss)
+        return _episode_key(cfg.suite, task, seed, init_state, cfg.noise, cfg.miss, cfg.max_steps)
 
     path = Path(cfg.out) if cfg.out else None
     rows = _read_rows(path) if path is not None else {}
@@ -448,7 +450,7 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
         for spec in specs:
             if not todo[spec.index]:
                 continue
-            env = make_env(cfg.suite, spec.index, render=False)
+            env = make_env(cfg.suite, spec.index, render=False, max_steps=cfg.max_steps)
             try:
                 actor = expert_actor(cfg.suite, spec.index, config)
                 for start in todo[spec.index]:
@@ -458,7 +460,8 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
                     else:
                         result = run_expert_episode(env, actor, seed=start)
                     row = {"suite": cfg.suite, "task": spec.index, "name": spec.name, **result,
-                           "noise": cfg.noise, "miss": cfg.miss, "seconds": round(time.perf_counter() - t0, 1)}
+                           "noise": cfg.noise, "miss": cfg.miss, "max_steps": cfg.max_steps,
+                           "seconds": round(time.perf_counter() - t0, 1)}
                     rows[key(spec.index, start)] = row
                     if logf is not None:
                         logf.write(json.dumps(row) + "\n")
