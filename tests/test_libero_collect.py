@@ -298,3 +298,25 @@ def test_a_run_refuses_demonstrations_drawn_with_other_meshes(tmp_path):
     write_episodes(tmp_path / "b_demo.hdf5", [episode], {"env": "libero"})
     with pytest.raises(ValueError, match="b_demo.hdf5 was rendered with mesh_faces=0 and this run asks for 4000"):
         check_rendering(tmp_path, 4000)
+
+
+def test_the_report_counts_failures_that_met_part_of_their_goal(tmp_path):
+    """libero.md says which failed episodes ended with some of the goal's predicates true (one of two objects
+    in the basket), per task; a failure that met none of its goal is not counted."""
+    from pivla.evaluation.libero import write_libero_report
+    from pivla.evaluation.runner import EvalConfig, aggregate
+    from pivla.io import atomic_write_json
+
+    def row(task: str, episode: int, success: bool, progress: float) -> dict:
+        return {"task": task, "task_index": int(task[-1]), "episode": episode, "init_state": episode, "seed": episode,
+                "success": success, "stage_progress": progress, "steps": 10, "plan_events": [[5, "complete"]] * 2,
+                "queries": 2, "control_ms_mean": 1.0, "wall_s": 1.0, "trace": [{"u_act": 0.1, "v": 0.5}] * 10}
+
+    rows = [row("task_0", 0, True, 1.0), row("task_0", 1, False, 0.5), row("task_1", 0, False, 0.0),
+            row("task_1", 1, False, 0.5), row("task_1", 2, False, 0.5)]
+    target = tmp_path / "eval" / "fixed"
+    target.mkdir(parents=True)
+    (target / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    atomic_write_json(target / "results.json", aggregate(rows, EvalConfig(policy="p", out=str(target)), tau_high=None))
+    report = write_libero_report(tmp_path, "libero_10").read_text()
+    assert "- fixed: 3 of 4 failures ended with part of the goal met (task_0 1, task_1 2)" in report

@@ -230,6 +230,29 @@ def test_an_official_episode_does_not_depend_on_the_one_before():
 
 
 @requires_libero
+def test_a_failed_episode_reports_how_much_of_its_goal_holds():
+    """LIBERO-10 task 0 wants two objects in the basket: with one put there, the episode that runs out of
+    steps ends with half of its goal met."""
+    from pivla.envs import make_env
+
+    env = make_env("libero", "libero_10", 0, render=False, max_steps=5)
+    try:
+        env.reset(seed=0, options={"init_state": 0})
+        sim, objects = env._env.env.sim, env._env.env.objects_dict
+        basket = sim.data.body_xpos[sim.model.body_name2id(objects["basket_1"].root_body)]
+        joint = objects["alphabet_soup_1"].joints[-1]
+        qpos = sim.data.get_joint_qpos(joint).copy()
+        qpos[:3] = basket + [0.0, 0.0, 0.08]  # dropped into the basket
+        sim.data.set_joint_qpos(joint, qpos)
+        sim.forward()
+        infos = [env.step(np.zeros(7))[-1] for _ in range(5)]
+    finally:
+        env.close()
+    assert all("stage_progress" not in info for info in infos[:-1])
+    assert not infos[-1]["success"] and infos[-1]["stage_progress"] == 0.5
+
+
+@requires_libero
 def test_render_false_has_no_images():
     from pivla.envs import make_env
 

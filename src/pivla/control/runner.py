@@ -44,7 +44,7 @@ class EpisodeResult:
     plans: list[tuple[int, str]]
     step_times: list[float]
     seed: int | None = None
-    stage_progress: float | None = None  # fraction of the task's stages reached (twin), None if unknown
+    stage_progress: float | None = None  # twin: fraction of the task's stages reached; LIBERO: of its goal met
     queries: int = 0  # policy forward passes
     episode: Episode | None = field(default=None, repr=False)
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -238,6 +239,12 @@ def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None 
         if fp.get("auroc_u_max") is not None:
             lines.append(f"- {n}: AUROC of the episode's max U for failure {fp['auroc_u_max']:.2f}, of -min V "
                          f"{fp['auroc_neg_v_min']:.2f}")
+    for n in names:
+        partial = Counter(r["task"] for r in rows[n] if not r["success"] and 0 < (r.get("stage_progress") or 0) < 1)
+        if partial:
+            failed = results[n]["episodes"] - results[n]["successes"]
+            lines.append(f"- {n}: {partial.total()} of {failed} failures ended with part of the goal met ("
+                         + ", ".join(f"{t} {k}" for t, k in sorted(partial.items())) + ")")
     if timings:
         order = sorted(timings, key=lambda k: STAGES.index(k) if k in STAGES else len(STAGES))
         lines.append("- Wall time: " + ", ".join(f"{k.replace('_', ' ')} {_duration(timings[k])}" for k in order)

@@ -289,7 +289,8 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None, v_thres
 
 def failure_stages(rows: list[dict]) -> dict[str, int]:
     """How far failed episodes got: counts of their final stage progress (twin: 0.25 reached, 0.5 grasped,
-    0.75 moved), which says where a policy breaks down. Empty when the env does not report stages."""
+    0.75 moved; LIBERO: the fraction of the goal's predicates that hold at the end), which says where a policy
+    breaks down. Empty when the env does not report stages."""
     counts = Counter(f"{r['stage_progress']:.2f}" for r in rows
                      if not r["success"] and r.get("stage_progress") is not None)
     return dict(sorted(counts.items()))

@@ -423,7 +423,18 @@ class LiberoEnv(gym.Env):
         self._t += 1
         success = bool(self._env.check_success())
         truncated = not success and self._t >= self.max_steps
-        return self._obs(raw), float(success), success, truncated, {"success": success, "step": self._t}
+        info: dict[str, Any] = {"success": success, "step": self._t}
+        if success or truncated:
+            info["stage_progress"] = 1.0 if success else self.goal_progress()
+        return self._obs(raw), float(success), success, truncated, info
+
+    def goal_progress(self) -> float:
+        """Fraction of the task's BDDL goal predicates that hold now. LIBERO's success is all of them; in a
+        failed episode this says how far it got (one of two objects in the basket, the drawer opened but the
+        bowl not in it)."""
+        problem = self._env.env
+        goal = problem.parsed_problem["goal_state"]
+        return sum(bool(problem._eval_predicate(p)) for p in goal) / len(goal)
 
     def close(self) -> None:
         if getattr(self, "_env", None) is not None:
