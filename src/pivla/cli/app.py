@@ -19,6 +19,8 @@ from typing import Any
 
 import tyro
 
+TYRO_CONFIG = (tyro.conf.CascadeSubcommandArgs,)  # a subcommand's options may follow its choice
+
 
 @dataclass(frozen=True)
 class Command:
@@ -55,18 +57,20 @@ def run(tree: dict[str, Command | Group], argv: list[str], prog: str, intro: str
     node = tree[name]
     if isinstance(node, Group):
         return run(node.commands, rest, f"{prog} {name}", node.help)
-    module = importlib.import_module(node.module)
-    fn: Callable[[Any], int | None] = getattr(module, node.function)
-    hints = typing.get_type_hints(fn)
-    first = next(iter(inspect.signature(fn).parameters))
-    default_fn = getattr(module, f"{node.function}_default", None)
+    fn, cls = command_target(node)
+    default_fn = getattr(importlib.import_module(node.module), f"{node.function}_default", None)
     default, rest = default_fn(rest) if default_fn is not None else (None, rest)
-    cls = hints[first]
     cfg = tyro.cli(cls, args=_choice_shorthand(cls, rest), prog=f"{prog} {name}",
-                   description=_description(fn, node), default=default,
-                   config=(tyro.conf.CascadeSubcommandArgs,))
+                   description=_description(fn, node), default=default, config=TYRO_CONFIG)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     return int(fn(cfg) or 0)
+
+
+def command_target(node: Command) -> tuple[Callable[[Any], int | None], type]:
+    """The function a command calls and the config class its arguments are parsed into (its first
+    parameter's type)."""
+    fn = getattr(importlib.import_module(node.module), node.function)
+    return fn, typing.get_type_hints(fn)[next(iter(inspect.signature(fn).parameters))]
 
 
 def _choice_fields(cls: type) -> dict[str, set[str]]:
