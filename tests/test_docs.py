@@ -3,6 +3,7 @@ names a heading that exists, and every documented command line is one the CLI ac
 
 import contextlib
 import dataclasses
+import importlib
 import io
 import re
 from pathlib import Path
@@ -101,3 +102,29 @@ def test_documented_commands_use_options_the_cli_has(monkeypatch):
             if flag.replace("_", "-") not in known and flag not in ("--help", "--version"):
                 wrong.append(f"{where}: `{cmd}`: {' '.join(path)} has no {flag}")
     assert not wrong, "documented commands the CLI would refuse:\n" + "\n".join(wrong)
+
+
+def test_documented_python_names_and_files_exist():
+    """Every `pivla.module.name` the docs cite imports and has that attribute, and every source file they
+    name exists: a reader who follows one lands on code."""
+    pages = [*ROOT.joinpath("docs").glob("*.md"), ROOT / "README.md"]
+    wrong = []
+    for page in pages:
+        text = page.read_text()
+        for dotted in sorted(set(re.findall(r"`(pivla(?:\.\w+)+)", text))):
+            parts = dotted.split(".")
+            for cut in range(len(parts), 0, -1):
+                try:
+                    obj = importlib.import_module(".".join(parts[:cut]))
+                    break
+                except ModuleNotFoundError:
+                    continue
+            try:
+                for name in parts[cut:]:
+                    obj = getattr(obj, name)
+            except AttributeError:
+                wrong.append(f"{page.name}: {dotted}")
+        for path in sorted(set(re.findall(r"`((?:src/)?pivla/[\w/]+(?:\.\w+|/))`", text))):
+            if not (ROOT / "src" / path.removeprefix("src/")).exists():
+                wrong.append(f"{page.name}: {path}")
+    assert not wrong, "docs name code that does not exist:\n" + "\n".join(wrong)
