@@ -115,13 +115,21 @@ def test_workers_give_the_same_results_as_one_process(tiny_policy, tmp_path):
         _same_episodes(_episodes(tmp_path / "one"), other)
 
 
-def test_eval_resumes_from_episode_log(tiny_policy, tmp_path):
+def test_eval_resumes_from_episode_log(tiny_policy, tmp_path, monkeypatch):
+    """After a write torn mid-line, the rerun plays only the missing episodes, and the log ends up holding
+    every episode once (the first new row is not glued to the torn line)."""
+    from pivla.evaluation import runner
+
     _eval(tiny_policy, tmp_path / "r", executor="fixed")
     log = tmp_path / "r" / "episodes.jsonl"
     lines = log.read_text().splitlines()
     log.write_text("\n".join(lines[:2]) + "\n" + lines[2][:20])  # interrupted mid-write
+    played, real = [], runner._run_job
+    monkeypatch.setattr(runner, "_run_job", lambda job: played.append(job[:3]) or real(job))
     res = _eval(tiny_policy, tmp_path / "r", executor="fixed")
-    assert res["episodes"] == 4
+    assert res["episodes"] == 4 and len(played) == 2
+    rows = runner.load_rows(log)
+    assert sorted(runner._key(r) for r in rows) == sorted(runner._key(json.loads(line)) for line in lines)
 
 
 def test_every_executor_runs_and_report_renders(tiny_policy, tmp_path):

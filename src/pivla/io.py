@@ -12,7 +12,7 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 
 @contextlib.contextmanager
@@ -85,6 +85,19 @@ def exclusive_lock(path: str | Path, what: str) -> Iterator[None]:
             raise RuntimeError(f"{path} is being written by another {what}; wait for it to finish, stop it, "
                                "or write elsewhere") from None
         yield
+
+
+def open_log(path: str | Path) -> IO[str]:
+    """A JSON-lines log opened for appending. After an interrupted write its last line is torn; the torn line
+    is ended first, so the next row starts on a line of its own (readers skip the torn one) instead of being
+    glued to it and lost."""
+    path = Path(path)
+    torn = path.exists() and path.stat().st_size > 0 and not path.read_bytes().endswith(b"\n")
+    f = open(path, "a")
+    if torn:
+        f.write("\n")
+        f.flush()
+    return f
 
 
 def write_mp4(path: str | Path, frames, fps: int) -> None:

@@ -35,7 +35,7 @@ from pivla.data.format import read_episodes, write_episodes
 from pivla.envs import family, make_env, seeds, select_tasks
 from pivla.envs.rollout import episode_seed
 from pivla.evaluation.stats import wilson_interval
-from pivla.io import atomic_write_json, read_json, write_mp4
+from pivla.io import atomic_write_json, open_log, read_json, write_mp4
 from pivla.serving.client import open_policy
 
 log = logging.getLogger(__name__)
@@ -394,7 +394,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     workers = max(1, min(cfg.workers, len(jobs)))
     threads = eval_threads(workers)
     bar = tqdm(total=len(jobs), desc=f"eval {cfg.executor.kind}", unit="ep", disable=not progress, leave=False)
-    with open(log_path, "a") as logf:
+    with open_log(log_path) as logf:
         def consume(row: dict) -> None:
             ep, video = row.pop("_episode", None), row.pop("_video", False)
             if ep is not None and video:

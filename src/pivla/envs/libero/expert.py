@@ -55,7 +55,7 @@ from pivla.envs.libero._geometry import (
 from pivla.envs.libero._pick import PickPlace, Target, miss_direction
 from pivla.envs.libero._skills import Command, Door, Drawer, ExpertConfig, Knob, PlanningError, Push, Skill
 from pivla.envs.libero.env import list_tasks, make_env
-from pivla.io import exclusive_lock
+from pivla.io import exclusive_lock, open_log
 
 __all__ = ["ARM_REACH", "ExpertConfig", "ExpertEvalConfig", "RolloutExpert", "TaskExpert", "expert_actor",
            "expert_success", "run_expert_episode", "within_reach", "wrist_distance"]
@@ -441,12 +441,9 @@ def expert_success(cfg: ExpertEvalConfig, progress: Callable[[dict], None] | Non
         logf = None
         if path is not None and any(todo.values()):
             path.parent.mkdir(parents=True, exist_ok=True)
-            torn = path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n")
             # one writer per file: a second run would repeat the first one's episodes
             stack.enter_context(exclusive_lock(path, "expert run"))
-            logf = stack.enter_context(open(path, "a"))
-            if torn:
-                logf.write("\n")  # after an interrupted write, the next row starts on a line of its own
+            logf = stack.enter_context(open_log(path))
         for spec in specs:
             if not todo[spec.index]:
                 continue
