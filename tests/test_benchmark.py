@@ -51,8 +51,8 @@ def test_a_report_of_a_run_stopped_early_draws_no_empty_figures(tmp_path):
     assert "not run" in (tmp_path / "benchmark.md").read_text()
 
 
-def test_every_decision_is_taken_on_validation_seeds_and_the_plan_tests_each_table():
-    cfg = BenchmarkConfig()
+def test_every_decision_is_taken_on_validation_seeds_and_the_plan_tests_each_table(tmp_path):
+    cfg = BenchmarkConfig(out=str(tmp_path))
     b = benchmark.Benchmark(cfg)
     b.decisions = {"hardest": {"cell": "push_arm_6"}, "failure_round": {"headline": "round2"}}
     plan = b.test_plan("push_arm_6")
@@ -65,8 +65,28 @@ def test_every_decision_is_taken_on_validation_seeds_and_the_plan_tests_each_tab
     assert all((f"abl_{v}", "push_arm_6", "fixed") in keys for v in ("discrete_only", "no_rl", "continuous_il_only"))
     unseen = next(c for p, c, _, _ in plan if c.name == "unseen_tasks")
     assert unseen.suite == "pick_place_unseen" and unseen.condition == "unseen_tasks"
-    # the failure round's rollouts are train-family episodes, never validation or test ones
-    assert {seeds.family_of(seeds.seed_for("train", c.condition, "block_away", 0)) for c in benchmark.ROLLOUT_CELLS} == {"train"}
+
+    # which seed family each stage evaluates on: both decisions on validation, the failure round's rollouts on
+    # train, the tables on test
+    calls: list[tuple[str, str, str, str]] = []
+
+    def fake_evaluate(seed, split, policy, cell, label, executor, record=None):
+        calls.append((split, policy, cell.name, label))
+        return {"successes": len(cell.name) % 7, "episodes": 10}  # a made-up success rate per condition
+
+    b.evaluate = fake_evaluate
+    hardest = b.choose_hardest()
+    rates = {n: len(n) % 7 for n in benchmark.candidate_cells(cfg)}
+    assert hardest["cell"] == min(rates, key=rates.get) and {c[0] for c in calls} == {"validation"}
+    calls.clear()
+    b.choose_round(hardest["cell"])
+    assert {c[0] for c in calls} == {"validation"} and {c[1] for c in calls} == {"main", "round2"}
+    calls.clear()
+    b.record_rollouts(0)
+    assert {c[0] for c in calls} == {"train"} and len(calls) == len(benchmark.ROLLOUT_CELLS)
+    calls.clear()
+    b.test("push_arm_6", ["round2", "seen"])
+    assert {c[0] for c in calls} == {"test"} and {c[1] for c in calls} == {"round2", "seen"}
 
 
 @pytest.mark.timeout(1200)
