@@ -82,8 +82,8 @@ def test_failed_write_leaves_previous_file(tmp_path):
     path = write_episodes(tmp_path / "a.hdf5", [_episode()])
     before = path.read_bytes()
     bad = _episode()
-    bad.obs["agentview_rgb"] = object()  # not an array: h5py fails mid-write
-    with pytest.raises(Exception):
+    bad.obs["agentview_rgb"] = object()  # not an array: h5py fails mid-write, after the first episode
+    with pytest.raises(TypeError, match="no native HDF5 equivalent"):
         write_episodes(path, [_episode(), bad])
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["a.hdf5"]

@@ -116,7 +116,7 @@ def test_gradient_checkpointing_gives_the_same_gradients(dirs):
         torch.testing.assert_close(grads[0][n], grads[1][n], rtol=1e-4, atol=1e-6, msg=n)
 
 
-def test_ema_target_uses_the_frozen_vision_tower(dirs):
+def test_frozen_target_is_a_frozen_copy_of_the_vision_tower(dirs):
     text = HFTextTokenizer.from_pretrained(str(dirs["vlm"]), 24)
     model = CMSModel(model_cfg(dirs, target="frozen"), len(text.vocab))
     assert model.latent_dim == 32  # SigLIP hidden 32, agent-view camera (target_encoder.cameras = 1)

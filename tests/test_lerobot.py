@@ -185,6 +185,7 @@ def test_reads_pivla_state_split_rewards_and_png_images(tmp_path):
                                                                                         "gripper_states.1"]
     made = write_fixture(tmp_path / "ds", state_names=names, with_rewards=True, png_wrist=True)
     episodes = read_lerobot(tmp_path / "ds")
+    assert len(episodes) == len(made["src"]) > 0
     for ep, s in zip(episodes, made["src"]):
         np.testing.assert_array_equal(ep.obs["ee_pos"], s["state"][:, :3])
         np.testing.assert_array_equal(ep.obs["gripper_states"], s["state"][:, 6:])

@@ -56,8 +56,14 @@ def test_watchdog_holds_when_the_host_goes_quiet(board, fake):
 
 
 def test_in_flight_bytes_are_bounded(fake):
+    """Unanswered requests never exceed the budget (the Uno's RX buffer would drop bytes), and sending waits
+    for replies rather than refusing: 20 requests fill the budget, then flow as replies come."""
     link = SerialLink(LinkConfig(fake.port, max_in_flight_bytes=50))
-    seqs = [link.send(P.Cmd.GET_STATE) for _ in range(20)]  # 7-byte frames: at most 7 outstanding
+    seqs, unanswered = [], []
+    for _ in range(20):  # 7-byte frames: at most 7 outstanding
+        seqs.append(link.send(P.Cmd.GET_STATE))
+        unanswered.append(link._in_flight_bytes())
+    assert 43 < max(unanswered) <= 50
     replies = [link.wait(s, 1.0) for s in seqs]
     assert all(r is not None and r.cmd == P.Cmd.GET_STATE | P.REPLY_FLAG for r in replies)
     with pytest.raises(ValueError):

@@ -36,8 +36,20 @@ def test_pulse_mapping_round_trips(calib):
 
 
 def test_board_limits_bracket_the_joint_range(calib):
-    for lim, (lo, hi) in zip(calib.board_limits(arm.home_q()), calib.limits_rad):
+    """The board accepts every joint at either end of its calibrated range, refuses a pulse 0.02 rad beyond
+    it, and spans the gripper from closed to open; home lies inside."""
+    limits = calib.board_limits(arm.home_q())
+    assert [lim.channel for lim in limits] == list(range(7))
+    home = arm.home_q()
+    for ch, (lo, hi) in enumerate(calib.limits_rad):
+        lim = limits[ch]
+        for angle, inside in ((lo, True), (hi, True), (lo - 0.02, False), (hi + 0.02, False)):
+            pulse = calib.to_pulses(np.where(np.arange(6) == ch, angle, home), 1.0)[ch]
+            assert (lim.min_us <= pulse <= lim.max_us) == inside, (ch, angle, pulse, lim)
         assert lim.min_us < lim.home_us < lim.max_us
+    gripper = limits[6]
+    assert (gripper.min_us, gripper.max_us) == tuple(sorted(calib.to_pulses(home, o)[6] for o in (0.0, 1.0)))
+    assert gripper.min_us <= gripper.home_us <= gripper.max_us
     # reversed joint: its max angle maps to the lower pulse
     assert calib.to_pulses(calib.limits_rad[:, 1], 1.0)[2] < calib.to_pulses(calib.limits_rad[:, 0], 1.0)[2]
 

@@ -79,6 +79,7 @@ def test_episodes_do_not_depend_on_worker_count():
     factory = functools.partial(make_env, "drawer", "open_drawer", image_size=32, realism="servo")
     one = collect_episodes(factory, make_expert(0.1), 3, seed=9, workers=1)
     two = collect_episodes(factory, make_expert(0.1), 3, seed=9, workers=2)
+    assert len(one) == len(two) == 3
     for a, b in zip(one, two):
         assert np.array_equal(a.actions, b.actions) and np.array_equal(a.obs["agentview_rgb"], b.obs["agentview_rgb"])
 
@@ -94,7 +95,7 @@ def test_a_smaller_collection_is_the_first_episodes_of_a_larger_one(tmp_path):
     for n in (2, 4):
         assert collect_demos(dataclasses.replace(base, out=str(tmp_path / str(n)), episodes=n)) == 0
     small, large = (read_episodes(tmp_path / str(n) / "ball_left_demo.hdf5") for n in (2, 4))
-    assert len(large) == 4
+    assert len(small) == 2 and len(large) == 4
     for a, b in zip(small, large[:2]):
         assert np.array_equal(a.actions, b.actions) and np.array_equal(a.obs["agentview_rgb"], b.obs["agentview_rgb"])
 
