@@ -165,3 +165,24 @@ def test_gae_hand_computed_episode():
     adv, ret = gae(r, v, d, g, lam)
     np.testing.assert_allclose(adv, [a0, a1, a2], atol=1e-6)
     np.testing.assert_allclose(ret, [a0 + 0.5, a1 + 0.6, a2 + 0.8], atol=1e-6)
+
+
+def test_a_damaged_file_reads_or_fails_naming_itself(tmp_path):
+    """Bytes overwritten anywhere in a file: reading it either works or raises DatasetError with the path,
+    never a bare h5py OSError or KeyError."""
+    from pivla.data.format import DatasetError, read_episodes
+
+    good = write_episodes(tmp_path / "good.hdf5", [_episode(), _episode()]).read_bytes()
+    rng = np.random.default_rng(0)
+    failures = 0
+    for i, offset in enumerate(rng.integers(0, len(good) - 64, 150)):
+        damaged = bytearray(good)
+        damaged[offset:offset + 64] = rng.integers(0, 256, 64, dtype=np.uint8).tobytes()
+        path = tmp_path / f"damaged{i}.hdf5"
+        path.write_bytes(bytes(damaged))
+        try:
+            read_episodes(path)
+        except DatasetError as e:
+            assert str(path) in str(e)
+            failures += 1
+    assert failures > 0  # some damage is seen (the rest hits bytes no reader checks, e.g. image pixels)

@@ -249,6 +249,8 @@ BAD_REQUESTS = {
     "object dtype": (_lying_header({b"dtype": "|O"}), "refused"),
     "NaN proprio": (_with(ee_pos=np.array([0.0, np.nan, 0.0], np.float32)), "NaN or inf"),
     "inf proprio": (_with(ee_ori=np.array([0.0, 0.0, np.inf])), "NaN or inf"),
+    "proprio beyond float32": (_with(ee_pos=np.array([1e300, 0.0, 0.0])), "beyond float32's range"),
+    "proprio far out of range": (_with(ee_pos=np.array([1e30, 0.0, 0.0], np.float32)), "non-finite actions"),
     "proprio length": (_with(gripper_states=np.zeros(3, np.float32)), "'gripper_states' must be 2 numbers"),
     "proprio text": (_with(ee_pos="up"), "'ee_pos' must be 3 numbers"),
     "missing proprio": (_with(ee_ori=None), "missing proprio key 'ee_ori'"),

@@ -159,9 +159,15 @@ class Policy:
     @torch.inference_mode()
     def infer_batch(self, obs_list: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
         """Batched ``infer``: every output gains a leading batch dimension."""
-        heads = head_outputs(self.model(self.model_inputs(obs_list)), self.model.bin_centers)
-        return unnormalize_actions(select_heads(heads, self.action_head, self.gripper_head, self.both_heads),
-                                   self.stats.action)
+        inputs = self.model_inputs(obs_list)
+        heads = head_outputs(self.model(inputs), self.model.bin_centers)
+        out = unnormalize_actions(select_heads(heads, self.action_head, self.gripper_head, self.both_heads),
+                                  self.stats.action)
+        if not np.isfinite(out["actions"]).all():  # a finite input so far out of range that the network overflows
+            raise ValueError("the policy computed non-finite actions from this observation (largest normalized "
+                             f"proprio value {float(inputs['proprio'].abs().max()):.3g}; the training data's lie "
+                             "within a few units)")
+        return out
 
     def infer(self, obs: Mapping[str, Any]) -> dict[str, np.ndarray]:
         """One observation -> actions (K,7) un-normalised from the primary head (the gripper from

@@ -126,54 +126,64 @@ def iter_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> 
     except OSError as e:
         raise DatasetError(f"{path}: not a readable HDF5 file ({e})") from e
     with f:
-        if "data" not in f:
-            raise DatasetError(f"{path}: missing key 'data'")
-        data = f["data"]
         try:
-            problem = json.loads(data.attrs.get("problem_info", "{}"))
-        except (TypeError, json.JSONDecodeError) as e:
-            raise DatasetError(f"{path}: attribute data.problem_info is not valid JSON") from e
-        file_instruction = problem.get("language_instruction", "")
-        if isinstance(file_instruction, list):  # some LIBERO files store it as a list of words
-            file_instruction = " ".join(file_instruction)
-        demos = sorted((k for k in data.keys() if k.startswith("demo")), key=_demo_sort_key)
-        if not demos:
-            raise DatasetError(f"{path}: group 'data' holds no demo_<i> groups")
-        for name in demos:
-            g = data[name]
-            for key in REQUIRED_DEMO_KEYS:
-                if key not in g:
-                    raise DatasetError(f"{path}: missing key 'data/{name}/{key}'")
-            keys = obs_keys if obs_keys is not None else tuple(g["obs"].keys())
-            obs = {}
-            try:
-                for key in keys:
-                    if key not in g["obs"]:
-                        raise DatasetError(f"{path}: missing key 'data/{name}/obs/{key}'")
-                    obs[key] = g["obs"][key][()]
-                instruction = g.attrs.get("language_instruction", file_instruction)
-                if isinstance(instruction, bytes):
-                    instruction = instruction.decode()
-                ep = Episode(
-                    actions=g["actions"][()],
-                    rewards=g["rewards"][()],
-                    dones=g["dones"][()],
-                    obs=obs,
-                    instruction=str(instruction),
-                    success=bool(g.attrs.get("success", True)),
-                    source=str(g.attrs.get("source", "expert")),
-                    meta=json.loads(g.attrs["meta"]) if "meta" in g.attrs else {},
-                )
-            except DatasetError as e:
-                raise DatasetError(f"{path}: data/{name}: {e}") if not str(e).startswith(str(path)) else e
-            except (OSError, KeyError, ValueError) as e:
-                raise DatasetError(f"{path}: data/{name} is truncated or corrupt ({e})") from e
-            img = obs.get("agentview_rgb")
-            if img is not None and (img.ndim != 4 or img.shape[-1] != 3 or img.dtype != np.uint8):
-                raise DatasetError(
-                    f"{path}: data/{name}/obs/agentview_rgb must be (T,H,W,3) uint8, got {img.shape} {img.dtype}"
-                )
-            yield ep
+            yield from _demos(path, f, obs_keys)
+        except DatasetError:
+            raise
+        except (OSError, KeyError, ValueError, RuntimeError) as e:  # h5py on a damaged file's structure
+            raise DatasetError(f"{path}: truncated or corrupt ({e})") from e
+
+
+def _demos(path: Path, f: h5py.File, obs_keys: tuple[str, ...] | None) -> Iterator[Episode]:
+    """The episodes of an open file, checked key by key."""
+    if "data" not in f:
+        raise DatasetError(f"{path}: missing key 'data'")
+    data = f["data"]
+    try:
+        problem = json.loads(data.attrs.get("problem_info", "{}"))
+    except (TypeError, json.JSONDecodeError) as e:
+        raise DatasetError(f"{path}: attribute data.problem_info is not valid JSON") from e
+    file_instruction = problem.get("language_instruction", "")
+    if isinstance(file_instruction, list):  # some LIBERO files store it as a list of words
+        file_instruction = " ".join(file_instruction)
+    demos = sorted((k for k in data.keys() if k.startswith("demo")), key=_demo_sort_key)
+    if not demos:
+        raise DatasetError(f"{path}: group 'data' holds no demo_<i> groups")
+    for name in demos:
+        g = data[name]
+        for key in REQUIRED_DEMO_KEYS:
+            if key not in g:
+                raise DatasetError(f"{path}: missing key 'data/{name}/{key}'")
+        keys = obs_keys if obs_keys is not None else tuple(g["obs"].keys())
+        obs = {}
+        try:
+            for key in keys:
+                if key not in g["obs"]:
+                    raise DatasetError(f"{path}: missing key 'data/{name}/obs/{key}'")
+                obs[key] = g["obs"][key][()]
+            instruction = g.attrs.get("language_instruction", file_instruction)
+            if isinstance(instruction, bytes):
+                instruction = instruction.decode()
+            ep = Episode(
+                actions=g["actions"][()],
+                rewards=g["rewards"][()],
+                dones=g["dones"][()],
+                obs=obs,
+                instruction=str(instruction),
+                success=bool(g.attrs.get("success", True)),
+                source=str(g.attrs.get("source", "expert")),
+                meta=json.loads(g.attrs["meta"]) if "meta" in g.attrs else {},
+            )
+        except DatasetError as e:
+            raise DatasetError(f"{path}: data/{name}: {e}") if not str(e).startswith(str(path)) else e
+        except (OSError, KeyError, ValueError) as e:
+            raise DatasetError(f"{path}: data/{name} is truncated or corrupt ({e})") from e
+        img = obs.get("agentview_rgb")
+        if img is not None and (img.ndim != 4 or img.shape[-1] != 3 or img.dtype != np.uint8):
+            raise DatasetError(
+                f"{path}: data/{name}/obs/agentview_rgb must be (T,H,W,3) uint8, got {img.shape} {img.dtype}"
+            )
+        yield ep
 
 
 def read_env_meta(path: str | Path) -> dict:

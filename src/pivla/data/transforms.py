@@ -85,9 +85,9 @@ def proprio_vector(obs: Mapping[str, Any], keys: Sequence[str]) -> np.ndarray:
         vec = np.concatenate([np.asarray(obs[k], np.float32) for k in keys], axis=-1)
     except KeyError as e:
         raise DatasetError(f"observation is missing proprio key {e.args[0]!r} (needed: {list(keys)})") from None
-    if not np.isfinite(vec).all():
-        bad = [k for k in keys if not np.isfinite(np.asarray(obs[k], np.float64)).all()]
-        raise DatasetError(f"observation {bad[0]!r} contains NaN or inf")
+    if not np.isfinite(vec).all():  # read as float32: 1e300 is finite before the cast and inf after
+        bad = [k for k in keys if not np.isfinite(np.asarray(obs[k], np.float32)).all()]
+        raise DatasetError(f"observation {bad[0]!r} contains NaN or inf, or a value beyond float32's range")
     return vec
 
 

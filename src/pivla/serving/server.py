@@ -247,10 +247,10 @@ class PolicyService:
         t0 = time.perf_counter()
         if method == "infer":
             obs = request.get("observation") if P.METHOD_KEY in request else request
-            reply: dict = self.policy.infer(P.check_observation(obs, self.spec, self.cfg.max_image_side))
+            reply: dict = self._infer(self.policy.infer, P.check_observation(obs, self.spec, self.cfg.max_image_side))
             reply = self._select(reply, request)
         elif method == "infer_batch":
-            reply = self._select(self.policy.infer_batch(self._observations(request)), request)
+            reply = self._select(self._infer(self.policy.infer_batch, self._observations(request)), request)
         elif method == "encode":
             obs = P.check_observation(request.get("observation"), self.spec, self.cfg.max_image_side, **encode_only)
             return {"latent": self.policy.encode(obs)}
@@ -264,6 +264,15 @@ class PolicyService:
             raise P.RequestError(f"unknown method {method!r}; methods: {list(P.METHODS)}")
         reply[P.TIMING_KEY] = {"infer_ms": (time.perf_counter() - t0) * 1e3}
         return reply
+
+    @staticmethod
+    def _infer(fn: Any, observations: Any) -> dict:
+        """The policy's answer; a ValueError is the policy refusing this input (a value its input pipeline
+        rejects, or one so far out of range that the actions come out non-finite), which the client is told."""
+        try:
+            return fn(observations)
+        except ValueError as e:
+            raise P.RequestError(str(e)) from e
 
 
 class _Server:
