@@ -186,3 +186,18 @@ def test_a_damaged_file_reads_or_fails_naming_itself(tmp_path):
             assert str(path) in str(e)
             failures += 1
     assert failures > 0  # some damage is seen (the rest hits bytes no reader checks, e.g. image pixels)
+
+
+@pytest.mark.parametrize("field", ["actions", "rewards", "ee_pos"])
+def test_a_nan_in_a_file_is_named_with_the_file_and_step(tmp_path, field):
+    from pivla.data.format import DatasetError, read_episodes
+
+    path = write_episodes(tmp_path / "a.hdf5", [_episode(), _episode()])
+    with h5py.File(path, "r+") as f:
+        g = f["data/demo_1"]
+        dset = g["obs"][field] if field == "ee_pos" else g[field]
+        values = dset[()]
+        values[2] = np.nan
+        dset[...] = values
+    with pytest.raises(DatasetError, match=rf"a.hdf5: data/demo_1: {field} holds NaN or inf \(first at step 2\)"):
+        read_episodes(path)

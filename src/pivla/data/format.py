@@ -68,6 +68,12 @@ class Episode:
         for name, arr in [("rewards", self.rewards), ("dones", self.dones), *self.obs.items()]:
             if len(arr) != T:
                 raise DatasetError(f"{name} has {len(arr)} steps but actions have {T}")
+        numeric = [("actions", self.actions), ("rewards", self.rewards),
+                   *((k, v) for k, v in self.obs.items() if np.issubdtype(np.asarray(v).dtype, np.floating))]
+        for name, arr in numeric:  # a NaN here would surface later as a NaN loss, far from the file
+            finite = np.isfinite(np.asarray(arr)).reshape(T, -1).all(axis=1)
+            if not finite.all():
+                raise DatasetError(f"{name} holds NaN or inf (first at step {int(np.argmin(finite))})")
 
     def __len__(self) -> int:
         return len(self.actions)
