@@ -92,7 +92,11 @@ def open_log(path: str | Path) -> IO[str]:
     is ended first, so the next row starts on a line of its own (readers skip the torn one) instead of being
     glued to it and lost."""
     path = Path(path)
-    torn = path.exists() and path.stat().st_size > 0 and not path.read_bytes().endswith(b"\n")
+    torn = False
+    if path.exists() and path.stat().st_size > 0:
+        with open(path, "rb") as end:  # the last byte only: a log of traces runs to tens of MB
+            end.seek(-1, os.SEEK_END)
+            torn = end.read(1) != b"\n"
     f = open(path, "a")
     if torn:
         f.write("\n")

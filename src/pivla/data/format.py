@@ -124,6 +124,10 @@ def read_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> 
     return list(iter_episodes(path, obs_keys))
 
 
+# what h5py raises on a damaged file, by where the damage lies (structure, heap, data)
+_H5_DAMAGE = (OSError, KeyError, ValueError, RuntimeError)
+
+
 def iter_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> Iterator[Episode]:
     """``read_episodes`` one episode at a time, so that a reader keeps no more than one in memory."""
     path = Path(path)
@@ -136,7 +140,7 @@ def iter_episodes(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> 
             yield from _demos(path, f, obs_keys)
         except DatasetError:
             raise
-        except (OSError, KeyError, ValueError, RuntimeError) as e:  # h5py on a damaged file's structure
+        except _H5_DAMAGE as e:
             raise DatasetError(f"{path}: truncated or corrupt ({e})") from e
 
 
@@ -182,7 +186,7 @@ def _demos(path: Path, f: h5py.File, obs_keys: tuple[str, ...] | None) -> Iterat
             )
         except DatasetError as e:
             raise DatasetError(f"{path}: data/{name}: {e}") if not str(e).startswith(str(path)) else e
-        except (OSError, KeyError, ValueError) as e:
+        except _H5_DAMAGE as e:
             raise DatasetError(f"{path}: data/{name} is truncated or corrupt ({e})") from e
         img = obs.get("agentview_rgb")
         if img is not None and (img.ndim != 4 or img.shape[-1] != 3 or img.dtype != np.uint8):
