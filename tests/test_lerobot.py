@@ -328,6 +328,10 @@ def _break(root, case: str) -> None:
         (root / "meta/episodes/chunk-000/file-000.parquet").write_bytes(b"PAR1 not really parquet")
     elif case == "unreadable video":
         (root / "videos/observation.images.image/chunk-000/file-001.mp4").write_bytes(b"\x00" * 4096)
+    elif case == "empty episode":
+        rows = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+        rows[1]["length"] = 0
+        pq.write_table(pa.Table.from_pylist(rows), root / "meta/episodes/chunk-000/file-000.parquet")
     elif case == "video too short":
         rows = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
         rows[1]["videos/observation.images.image/from_timestamp"] = 0.9  # past the end of the file's 12 frames
@@ -343,6 +347,7 @@ def _break(root, case: str) -> None:
     ("truncated parquet", "file-001.parquet: truncated or corrupt parquet"),
     ("corrupt episodes parquet", "meta/episodes/chunk-000/file-000.parquet: truncated or corrupt parquet"),
     ("unreadable video", "file-001.mp4: unreadable video"),
+    ("empty episode", "episode 1 has length 0; an episode needs a frame"),
     ("video too short", "episode 1 needs 7 frames from 0.900 s, the video has 3 of them"),
 ])
 def test_bad_input_gets_a_named_error(fixture_dataset, tmp_path, case, message):

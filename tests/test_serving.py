@@ -281,6 +281,32 @@ def test_bad_request_gets_an_error_frame_and_the_connection_stays_usable(server,
     ws.close()
 
 
+LOCAL_REFUSALS = {
+    "missing camera": ({"eye_in_hand_rgb": None}, r"lacks camera\(s\) \['eye_in_hand_rgb'\]"),
+    "float image": ({"agentview_rgb": np.zeros((32, 32, 3), np.float32)}, "'agentview_rgb' must be an HxWx3 uint8"),
+    "NaN proprio": ({"ee_pos": np.array([0.0, np.nan, 0.0], np.float32)}, "'ee_pos' contains NaN or inf"),
+    "proprio length": ({"gripper_states": np.zeros(3, np.float32)}, "'gripper_states' has 3 numbers, the policy was trained on 2"),
+    "proprio text": ({"ee_pos": "up"}, "must hold numbers"),
+    "missing proprio": ({"ee_ori": None}, "missing proprio key 'ee_ori'"),
+    "missing instruction": ({"instruction": None}, "missing 'instruction'"),
+    "instruction not text": ({"instruction": 5}, "'instruction' must be a str, got int"),
+}
+
+
+@pytest.mark.parametrize("name", list(LOCAL_REFUSALS))
+def test_a_local_policy_names_what_is_wrong_with_an_observation(local, name):
+    """In process, without the server's checks, a malformed observation is refused by the input pipeline."""
+    changes, expected = LOCAL_REFUSALS[name]
+    obs = observation(2)
+    for k, v in changes.items():
+        if v is None:
+            del obs[k]
+        else:
+            obs[k] = v
+    with pytest.raises(ValueError, match=expected):
+        local.infer(obs)
+
+
 def test_oversized_message_closes_only_that_connection(server):
     ws = raw(server)
     ws.send(b"\0" * (MAX_MESSAGE + 1))

@@ -92,8 +92,9 @@ class Policy:
             proprio=_proprio_lengths(stats, self.cfg.proprio_keys),
             chunk=self.cfg.chunk, horizon=self.cfg.horizon, action_dim=self.cfg.action_dim,
             latent_dim=model.latent_dim, target_cameras=model.target.cameras, target_proprio=model.target.proprio > 0)
-        self._inputs = input_pipeline(self.cfg, stats.proprio, text)
-        self._proprio = compose(proprio_steps(self.cfg, stats.proprio))
+        lengths = [n for _, n in self.spec.proprio]
+        self._inputs = input_pipeline(self.cfg, stats.proprio, text, lengths)
+        self._proprio = compose(proprio_steps(self.cfg, stats.proprio, lengths))
         # which head's actions are executed: the continuous one, unless the run trained only the discrete one
         self.action_head = action_head
         # U_act (Eq. 13) is the disagreement of two trained heads; a one-head ablation has none, and comparing

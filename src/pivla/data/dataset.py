@@ -66,7 +66,8 @@ class PreparedEpisode:
 def prepare_episode(ep: Episode, cfg: ModelConfig, stats: NormStats, text: WordTokenizer) -> PreparedEpisode:
     """An episode through the same input pipeline the policy applies at inference, plus the action targets."""
     try:
-        obs = input_pipeline(cfg, stats.proprio, text)({**ep.obs, "instruction": ep.instruction})
+        lengths = None if stats.proprio_layout is None else [n for _, n in stats.proprio_layout]
+        obs = input_pipeline(cfg, stats.proprio, text, lengths)({**ep.obs, "instruction": ep.instruction})
         targets = NormalizeActions(stats.action, cfg.n_bins)({"actions": ep.actions})
     except DatasetError as e:
         raise DatasetError(f"episode {ep.instruction!r}: {e}") from None

@@ -791,6 +791,8 @@ def _episode(root: Path, row: dict, data: _DataFiles, videos: dict[str, _VideoRe
     e = row["episode_index"]
     try:
         length = int(row["length"])
+        if length < 1:
+            raise DatasetError(f"{root}/{EPISODES_DIR}: episode {e} has length {length}; an episode needs a frame")
         cols = data.episode(e, int(row["data/chunk_index"]), int(row["data/file_index"]), length)
     except (KeyError, TypeError) as err:
         raise DatasetError(f"{root}/{EPISODES_DIR}: episode {e} lacks {err.args[0]!r}") from None

@@ -71,20 +71,29 @@ class StackCameras:
 
 @dataclass(frozen=True)
 class ProprioVector:
-    """The proprioceptive keys concatenated in order: ``proprio`` (..., P), refused if missing or not finite."""
+    """The proprioceptive keys concatenated in order: ``proprio`` (..., P), refused if missing or not finite,
+    or (given the training data's ``lengths``) if a key has another length than it had there."""
 
     keys: tuple[str, ...]
+    lengths: tuple[int, ...] | None = None
 
     def __call__(self, data: Mapping[str, Any]) -> Sample:
-        return {**data, "proprio": proprio_vector(data, self.keys)}
+        return {**data, "proprio": proprio_vector(data, self.keys, self.lengths)}
 
 
-def proprio_vector(obs: Mapping[str, Any], keys: Sequence[str]) -> np.ndarray:
-    """Concatenate the proprioceptive observation keys (time-major or single step)."""
+def proprio_vector(obs: Mapping[str, Any], keys: Sequence[str], lengths: Sequence[int] | None = None) -> np.ndarray:
+    """Concatenate the proprioceptive observation keys (time-major or single step); ``lengths``: each key's
+    expected last-axis length, checked so that a wrong one is named rather than found in the total."""
     try:
-        vec = np.concatenate([np.asarray(obs[k], np.float32) for k in keys], axis=-1)
+        parts = [np.atleast_1d(np.asarray(obs[k], np.float32)) for k in keys]
     except KeyError as e:
         raise DatasetError(f"observation is missing proprio key {e.args[0]!r} (needed: {list(keys)})") from None
+    except (TypeError, ValueError) as e:
+        raise DatasetError(f"observation's proprio keys {list(keys)} must hold numbers: {e}") from None
+    for key, part, n in zip(keys, parts, lengths or (), strict=False):
+        if n >= 0 and part.shape[-1] != n:
+            raise DatasetError(f"observation {key!r} has {part.shape[-1]} numbers, the policy was trained on {n}")
+    vec = np.concatenate(parts, axis=-1)
     if not np.isfinite(vec).all():  # read as float32: 1e300 is finite before the cast and inf after
         bad = [k for k in keys if not np.isfinite(np.asarray(obs[k], np.float32)).all()]
         raise DatasetError(f"observation {bad[0]!r} contains NaN or inf, or a value beyond float32's range")
@@ -115,7 +124,9 @@ class TokenizeInstruction:
         text = data.get("instruction", data.get("prompt"))
         if text is None:
             raise DatasetError("observation is missing 'instruction'")
-        ids, mask = self.tokenizer.encode(str(text))
+        if not isinstance(text, str):
+            raise DatasetError(f"observation 'instruction' must be a str, got {type(text).__name__}")
+        ids, mask = self.tokenizer.encode(text)
         return {**data, "text_ids": ids, "text_mask": mask}
 
 
@@ -134,16 +145,20 @@ class NormalizeActions:
         return {**data, "actions": actions, "bins": bin_actions(actions, self.n_bins)}
 
 
-def proprio_steps(cfg: ModelConfig, proprio_stats: StandardStats) -> list[Callable[[Mapping[str, Any]], Sample]]:
-    """Observation -> normalised ``proprio``: the model's input, and the proprio part of a target latent."""
-    return [ProprioVector(tuple(cfg.proprio_keys)), NormalizeProprio(proprio_stats, cfg.proprio_dim)]
+def proprio_steps(cfg: ModelConfig, proprio_stats: StandardStats,
+                  lengths: Sequence[int] | None = None) -> list[Callable[[Mapping[str, Any]], Sample]]:
+    """Observation -> normalised ``proprio``: the model's input, and the proprio part of a target latent;
+    ``lengths``: each proprio key's length in the training data, when known (``NormStats.proprio_layout``)."""
+    return [ProprioVector(tuple(cfg.proprio_keys), None if lengths is None else tuple(lengths)),
+            NormalizeProprio(proprio_stats, cfg.proprio_dim)]
 
 
-def input_pipeline(cfg: ModelConfig, proprio_stats: StandardStats, text: TextTokenizer) -> Callable[[Mapping[str, Any]], Sample]:
+def input_pipeline(cfg: ModelConfig, proprio_stats: StandardStats, text: TextTokenizer,
+                   lengths: Sequence[int] | None = None) -> Callable[[Mapping[str, Any]], Sample]:
     """Observation -> model inputs (``images``, ``proprio``, ``text_ids``, ``text_mask``), as NumPy arrays."""
     return compose([
         StackCameras(tuple(cfg.cameras), cfg.image_size),
-        *proprio_steps(cfg, proprio_stats),
+        *proprio_steps(cfg, proprio_stats, lengths),
         TokenizeInstruction(text),
     ])
 
