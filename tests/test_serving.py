@@ -219,16 +219,19 @@ def test_metadata_and_round_trip_match_the_local_policy(server, local):
     ws.close()
 
 
+def _changed(changes: dict) -> dict:
+    """Observation 2 with keys replaced, or removed where the value is None."""
+    obs = observation(2)
+    for k, v in changes.items():
+        if v is None:
+            del obs[k]
+        else:
+            obs[k] = v
+    return obs
+
+
 def _with(**changes):
-    def make():
-        obs = observation(2)
-        for k, v in changes.items():
-            if v is None:
-                del obs[k]
-            else:
-                obs[k] = v
-        return packb(obs)
-    return make
+    return lambda: packb(_changed(changes))
 
 
 def _lying_header(changes=None):
@@ -297,14 +300,8 @@ LOCAL_REFUSALS = {
 def test_a_local_policy_names_what_is_wrong_with_an_observation(local, name):
     """In process, without the server's checks, a malformed observation is refused by the input pipeline."""
     changes, expected = LOCAL_REFUSALS[name]
-    obs = observation(2)
-    for k, v in changes.items():
-        if v is None:
-            del obs[k]
-        else:
-            obs[k] = v
     with pytest.raises(ValueError, match=expected):
-        local.infer(obs)
+        local.infer(_changed(changes))
 
 
 def test_oversized_message_closes_only_that_connection(server):
