@@ -95,7 +95,7 @@ def proprio_vector(obs: Mapping[str, Any], keys: Sequence[str], lengths: Sequenc
             raise DatasetError(f"observation {key!r} has {part.shape[-1]} numbers, the policy was trained on {n}")
     vec = np.concatenate(parts, axis=-1)
     if not np.isfinite(vec).all():  # read as float32: 1e300 is finite before the cast and inf after
-        bad = [k for k in keys if not np.isfinite(np.asarray(obs[k], np.float32)).all()]
+        bad = [k for k, part in zip(keys, parts) if not np.isfinite(part).all()]
         raise DatasetError(f"observation {bad[0]!r} contains NaN or inf, or a value beyond float32's range")
     return vec
 
