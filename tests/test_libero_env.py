@@ -253,6 +253,32 @@ def test_a_failed_episode_reports_how_much_of_its_goal_holds():
 
 
 @requires_libero
+def test_a_goal_predicate_that_holds_at_the_reset_is_no_progress():
+    """LIBERO-10 task 8's goal is both moka pots on the stove and the stove on, and the stove starts on:
+    an episode that moves nothing has met none of its goal, one with a pot on the stove half of it."""
+    from pivla.envs import make_env
+
+    env = make_env("libero", "libero_10", 8, render=False, max_steps=30)
+    try:
+        progress = []
+        for moved in (False, True):
+            env.reset(seed=0, options={"init_state": 0})
+            if moved:
+                sim, objects = env._env.env.sim, env._env.env.objects_dict
+                region = env._env.env.object_sites_dict["flat_stove_1_cook_region"]
+                joint = objects["moka_pot_1"].joints[-1]
+                qpos = sim.data.get_joint_qpos(joint).copy()
+                qpos[:3] = sim.data.get_site_xpos(region.name) + [0.0, 0.0, 0.1]  # settles on the burner
+                sim.data.set_joint_qpos(joint, qpos)
+                sim.forward()
+            infos = [env.step(np.zeros(7))[-1] for _ in range(30)]
+            progress.append(infos[-1]["stage_progress"])
+    finally:
+        env.close()
+    assert progress == [0.0, 0.5]
+
+
+@requires_libero
 def test_render_false_has_no_images():
     from pivla.envs import make_env
 

@@ -235,6 +235,7 @@ class LiberoEnv(gym.Env):
         self._t = 0
         self.episode_id = 0  # incremented by every reset, so stateful actors notice a new episode
         self._last_raw: dict[str, np.ndarray] | None = None
+        self._open_goal: list = []  # the goal predicates that did not hold at the reset
         s = config.image_size
         spaces: dict[str, gym.Space] = {
             key: gym.spaces.Box(0, 255, (s, s, 3), np.uint8) for key in (config.cameras if cams else ())
@@ -336,6 +337,7 @@ class LiberoEnv(gym.Env):
         self._last_raw = raw
         self._t = 0
         self.episode_id += 1
+        self._open_goal = self._unmet_goal()
         info = {"success": bool(self._env.check_success()), "init_state": self.init_state,
                 "init_seed": self.init_seed, "task": self.spec_.name}
         if mode == "random":
@@ -428,13 +430,20 @@ class LiberoEnv(gym.Env):
             info["stage_progress"] = 1.0 if success else self.goal_progress()
         return self._obs(raw), float(success), success, truncated, info
 
-    def goal_progress(self) -> float:
-        """Fraction of the task's BDDL goal predicates that hold now. LIBERO's success is all of them; in a
-        failed episode this says how far it got (one of two objects in the basket, the drawer opened but the
-        bowl not in it)."""
+    def _unmet_goal(self) -> list:
+        """The task's BDDL goal predicates that do not hold now."""
         problem = self._env.env
-        goal = problem.parsed_problem["goal_state"]
-        return sum(bool(problem._eval_predicate(p)) for p in goal) / len(goal)
+        return [p for p in problem.parsed_problem["goal_state"] if not problem._eval_predicate(p)]
+
+    def goal_progress(self) -> float:
+        """Fraction of the goal predicates left open at the reset that hold now. LIBERO's success is all of
+        them; in a failed episode this says how far it got (one of two objects in the basket, the drawer
+        opened but the bowl not in it). A predicate that already held at the reset is no progress: in
+        LIBERO-10's "put both moka pots on the stove" the stove, which the goal wants on, starts on."""
+        if not self._open_goal:
+            return 1.0
+        problem = self._env.env
+        return sum(bool(problem._eval_predicate(p)) for p in self._open_goal) / len(self._open_goal)
 
     def close(self) -> None:
         if getattr(self, "_env", None) is not None:
