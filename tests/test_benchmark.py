@@ -11,11 +11,12 @@ from pivla.evaluation.benchmark import BenchmarkConfig, Results
 from pivla.io import atomic_write_json
 
 
-def _write_eval(root, seed, policy, cell, label, successes):
+def _write_eval(root, seed, policy, cell, label, successes, traces=None):
     d = root / f"seed{seed}" / "test" / policy / cell / label
     d.mkdir(parents=True)
     rows = [{"task": "block_away", "task_index": 0, "episode": i, "success": bool(s),
-             "seed": seeds.seed_for("test", "in_distribution", "block_away", i)} for i, s in enumerate(successes)]
+             "seed": seeds.seed_for("test", "in_distribution", "block_away", i),
+             "trace": traces[i] if traces else []} for i, s in enumerate(successes)]
     (d / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     atomic_write_json(d / "results.json", {"successes": sum(successes), "episodes": len(successes)})
 
@@ -40,6 +41,27 @@ def test_comparisons_pair_episodes_within_each_seed_and_pool_the_seeds(tmp_path)
     records = json.loads((tmp_path / "benchmark.json").read_text())["comparisons"]
     assert [(r["a"], r["b"], r["only_a"], r["only_b"]) for r in records if r["table"] == "headline"] == [
         (["main", "in_distribution", "aurd"], ["main", "in_distribution", "fixed"], 3, 1)]
+
+
+def test_departures_group_aurds_paired_episodes_by_its_first_cut(tmp_path):
+    """Seed 0: AURD cuts nothing in episode 0 (both solve it), replans first in 1 (only AURD solves it) and 2
+    (only fixed); seed 1: it pauses first in episode 0 (only fixed). Pooled: none 1: 0 / 0, replan 2: 1 / 1,
+    pause 1: 0 / 1, prune 0."""
+    traces = {0: [[{"ended": "complete"}], [{"ended": "replan"}], [{"ended": "complete"}, {"ended": "replan", "event": "pause"}]],
+              1: [[{"event": "pause", "ended": "complete"}]]}
+    _write_eval(tmp_path, 0, "main", "unseen_env", "aurd", [1, 1, 0], traces[0])
+    _write_eval(tmp_path, 0, "main", "unseen_env", "fixed", [1, 0, 1])
+    _write_eval(tmp_path, 1, "main", "unseen_env", "aurd", [0], traces[1])
+    _write_eval(tmp_path, 1, "main", "unseen_env", "fixed", [1])
+    dep = Results(tmp_path).departures("main", "unseen_env")
+    assert {g: tuple(v.values()) for g, v in dep.items()} == {
+        "none": (1, 0, 0), "replan": (2, 1, 1), "prune": (0, 0, 0), "pause": (1, 0, 1)}
+    assert Results(tmp_path).departures("main", "in_distribution") is None  # not run
+    atomic_write_json(tmp_path / "benchmark_config.json", dataclasses.asdict(BenchmarkConfig(out=str(tmp_path))))
+    benchmark.write_benchmark_report(tmp_path)
+    rows = json.loads((tmp_path / "benchmark.json").read_text())["tables"]["departures"]
+    assert [r["cell"] for r in rows] == ["unseen_env", "all"]
+    assert rows[-1]["replan"] == {"episodes": 2, "only_aurd": 1, "only_fixed": 1, "p_mcnemar": 1.0}
 
 
 def test_a_report_of_a_run_stopped_early_draws_no_empty_figures(tmp_path):
@@ -101,7 +123,7 @@ def test_quick_benchmark_writes_a_complete_benchmark_json(tmp_path):
     report = benchmark.run_benchmark(cfg)
     data = json.loads((tmp_path / "b" / "benchmark.json").read_text())
     tables = ("headline", "table2", "table3", "suites", "displace_object", "push_arm", "realism", "table4", "table5",
-              "table6", "table7", "failure_round", "sensitivity", "demo_counts", "compute")
+              "table6", "table7", "failure_round", "sensitivity", "demo_counts", "departures", "compute")
     assert set(tables) <= set(data["tables"]) and all(data["tables"][t] for t in tables)
     assert data["hardest_condition"] in benchmark.candidate_cells(cfg)
     assert data["headline_policy"] in ("main", "round2")

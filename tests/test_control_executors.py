@@ -5,6 +5,7 @@ import pytest
 
 from pivla.control import make_executor
 from pivla.control.contract import Calibration, ChunkPolicy, PolicySpec
+from pivla.control.executors import first_cut
 from pivla.control.math import action_uncertainty, adahorizon
 
 
@@ -260,3 +261,23 @@ def test_executors_count_their_policy_queries(name):
         assert ex.queries == 13
     ex.reset()
     assert ex.queries == 0
+
+
+def test_first_cut_names_where_aurd_left_a_fixed_horizons_schedule():
+    """None: AURD ran a fixed horizon's actions step for step; otherwise the kind of its first cut."""
+    cases = [
+        (ScriptedPolicy(), {}, None),
+        (ScriptedPolicy(latent_error={2: 2.0}), {}, "replan"),
+        (ScriptedPolicy(u_act=[0, 0.4, 0, 0, 0, 0, 0, 0], values=[1, 0.1, 1, 1, 1]), {"max_pauses": 0}, "prune"),
+        (ScriptedPolicy(u_act=[1.0] + [0] * 7), {}, "pause"),
+    ]
+    for policy, options, expected in cases:
+        ex = make_executor("aurd", **options)
+        acts = run(ex, policy, 11)
+        assert first_cut(ex.trace) == expected
+        if expected is None:
+            fixed = run(make_executor("fixed", horizon=5), ScriptedPolicy(), 11)
+            assert all(np.array_equal(a, b) for a, b in zip(acts, fixed))
+    # a plan cut at a step whose new plan then pauses: the cut came first
+    trace = [{"ended": None, "event": None}, {"ended": "replan", "event": "pause"}, {"ended": "pause", "event": None}]
+    assert first_cut(trace) == "replan"

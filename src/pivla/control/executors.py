@@ -439,6 +439,21 @@ EXECUTORS: dict[str, tuple[type, type[BaseExecutor]]] = {
 }
 
 
+CUTS = ("replan", "prune", "pause")
+
+
+def first_cut(trace: list[dict]) -> str | None:
+    """How AURD first left its nominal schedule in an episode's trace: "replan", "prune" or "pause"; None if it
+    never did. Until that step AURD executes what a fixed horizon of the same H would, so in a paired episode
+    the first cut is where the two can part (the benchmark groups its discordant pairs by it)."""
+    for row in trace:
+        if row.get("ended") in CUTS:  # a plan cut at this step (a pause here too comes after that cut)
+            return row["ended"]
+        if row.get("event") == "pause":
+            return "pause"
+    return None
+
+
 def executor_config(name: str, **options: Any) -> ExecutorConfig:
     """The config of an executor by name, with options replacing its defaults (unknown options are an error)."""
     if name not in EXECUTORS:

@@ -35,7 +35,7 @@ from typing import Any, Literal
 import numpy as np
 
 from pivla.control.calibrate import CalibrationConfig, calibrate
-from pivla.control.executors import ExecutorConfig, config_to_dict, executor_config
+from pivla.control.executors import CUTS, ExecutorConfig, config_to_dict, executor_config, first_cut
 from pivla.data.format import read_env_meta, read_episodes, write_episodes
 from pivla.envs import select_tasks
 from pivla.envs.collect import CollectConfig, collect_demos
@@ -48,7 +48,14 @@ from pivla.evaluation.protocol import (
 )
 from pivla.evaluation.report import new_figure, save_figure
 from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
-from pivla.evaluation.stats import compare, format_difference, paired_successes, percent_interval, wilson_interval
+from pivla.evaluation.stats import (
+    compare,
+    format_difference,
+    mcnemar_exact,
+    paired_successes,
+    percent_interval,
+    wilson_interval,
+)
 from pivla.evaluation.timing import StageTimes
 from pivla.io import atomic_write_bytes, atomic_write_json
 from pivla.policy import load_policy
@@ -466,6 +473,22 @@ class Results:
         pairs = [paired_successes(ra, rb) for (_, ra), (_, rb) in zip(self.rows(*a, split=split), self.rows(*b, split=split))]
         return compare(np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs]))
 
+    def departures(self, policy: str, cell: str) -> dict[str, dict] | None:
+        """AURD's test episodes against the fixed horizon's, grouped by AURD's first cut (``first_cut``; "none":
+        it never cut, so both ran the same actions): per group the episodes and those only AURD / only the fixed
+        horizon solved. Says which of AURD's decisions its wins and losses start at."""
+        if not (self.has(policy, cell, "aurd") and self.has(policy, cell, "fixed")):
+            return None
+        groups = {g: [0, 0, 0] for g in ("none", *CUTS)}
+        for (_, rows_a), (_, rows_b) in zip(self.rows(policy, cell, "aurd"), self.rows(policy, cell, "fixed")):
+            a, b = paired_successes(rows_a, rows_b)
+            cuts = [first_cut(r["trace"]) or "none" for r in sorted(rows_a, key=lambda r: (r["task_index"], r["episode"]))]
+            for cut, sa, sb in zip(cuts, a, b):
+                groups[cut][0] += 1
+                groups[cut][1] += bool(sa and not sb)
+                groups[cut][2] += bool(sb and not sa)
+        return {g: {"episodes": n, "only_aurd": ia, "only_fixed": ib} for g, (n, ia, ib) in groups.items()}
+
     def task_rates(self, policy: str, cell: str, label: str) -> dict[str, dict]:
         per: dict[str, list[bool]] = {}
         for _, rows in self.rows(policy, cell, label):
@@ -578,6 +601,7 @@ def write_benchmark_report(out: str | Path) -> Path:
         counts = _demo_counts(res, cfg, hardest, table)
     else:
         sens, counts = {}, {}
+    _departures(res, headline, cells, table)
     comp_rows, comp_recs = [], []
     for e in EXECUTORS:
         rs = res.results(headline, "in_distribution", e)
@@ -631,6 +655,27 @@ def _ablation_tables(res: Results, hardest: str, table: Callable, versus: Callab
         above = key
     table("table7", f"Table 7: components added one at a time ({hardest})", ["configuration", "success", "- row above"],
           rows, recs)
+
+
+def _departures(res: Results, policy: str, names: Iterable[str], table: Callable) -> None:
+    """Where AURD's wins and losses against the fixed horizon start, by its first cut, per condition and pooled."""
+    groups = ("none", *CUTS)
+    rows, recs, total = [], [], {g: [0, 0, 0] for g in groups}
+    for name in names:
+        dep = res.departures(policy, name)
+        if dep is None:
+            continue
+        for g in groups:
+            total[g] = [t + v for t, v in zip(total[g], dep[g].values())]
+        rows.append([name, *(f"{dep[g]['episodes']}: {dep[g]['only_aurd']} / {dep[g]['only_fixed']}" for g in groups)])
+        recs.append({"cell": name, **dep})
+    if rows:
+        rows.append(["all, exact McNemar p", *(f"{n}: {ia} / {ib} (p {mcnemar_exact(ia, ib):.2g})"
+                                              for n, ia, ib in total.values())])
+        recs.append({"cell": "all", **{g: {"episodes": n, "only_aurd": ia, "only_fixed": ib,
+                                           "p_mcnemar": mcnemar_exact(ia, ib)} for g, (n, ia, ib) in total.items()}})
+    table("departures", "Where AURD parts from the fixed horizon: episodes by AURD's first cut (episodes: only "
+          "AURD solved / only fixed solved)", ["condition", "no cut", *(f"first cut: {g}" for g in CUTS)], rows, recs)
 
 
 def _failure_round(res: Results, hardest: str, top: int, table: Callable, versus: Callable) -> None:
