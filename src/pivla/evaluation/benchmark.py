@@ -481,12 +481,14 @@ class Results:
             return None
         groups = {g: [0, 0, 0] for g in ("none", *CUTS)}
         for (_, rows_a), (_, rows_b) in zip(self.rows(policy, cell, "aurd"), self.rows(policy, cell, "fixed")):
-            a, b = paired_successes(rows_a, rows_b)
-            cuts = [first_cut(r["trace"]) or "none" for r in sorted(rows_a, key=lambda r: (r["task_index"], r["episode"]))]
-            for cut, sa, sb in zip(cuts, a, b):
-                groups[cut][0] += 1
-                groups[cut][1] += bool(sa and not sb)
-                groups[cut][2] += bool(sb and not sa)
+            paired_successes(rows_a, rows_b)  # raises unless both ran the same episodes with the same seeds
+            fixed = {(r["task_index"], r["episode"]): bool(r["success"]) for r in rows_b}
+            for r in rows_a:
+                sa, sb = bool(r["success"]), fixed[(r["task_index"], r["episode"])]
+                group = groups[first_cut(r["trace"]) or "none"]
+                group[0] += 1
+                group[1] += sa and not sb
+                group[2] += sb and not sa
         return {g: {"episodes": n, "only_aurd": ia, "only_fixed": ib} for g, (n, ia, ib) in groups.items()}
 
     def task_rates(self, policy: str, cell: str, label: str) -> dict[str, dict]:
