@@ -12,6 +12,7 @@ from pivla.evaluation.stats import (
     mcnemar_exact,
     newcombe_paired_interval,
     paired_difference,
+    paired_rows,
     paired_successes,
     wilson_interval,
 )
@@ -125,6 +126,8 @@ def test_paired_successes_aligns_rows_and_refuses_other_episodes():
     rows_b = [dict(r, success=True) for r in reversed(rows_a)]
     a, b = paired_successes(rows_a, rows_b)
     assert a.tolist() == [True, False, True, False, True, False] and b.all()
+    assert all(ra["task_index"] == rb["task_index"] and ra["episode"] == rb["episode"]
+               for ra, rb in paired_rows(rows_a, rows_b))
     with pytest.raises(ValueError, match="same episodes"):
         paired_successes(rows_a, rows_b[:-1])
     with pytest.raises(ValueError, match="other seeds"):

@@ -52,6 +52,7 @@ from pivla.evaluation.stats import (
     compare,
     format_difference,
     mcnemar_exact,
+    paired_rows,
     paired_successes,
     percent_interval,
     wilson_interval,
@@ -481,11 +482,9 @@ class Results:
             return None
         groups = {g: [0, 0, 0] for g in ("none", *CUTS)}
         for (_, rows_a), (_, rows_b) in zip(self.rows(policy, cell, "aurd"), self.rows(policy, cell, "fixed")):
-            paired_successes(rows_a, rows_b)  # raises unless both ran the same episodes with the same seeds
-            fixed = {(r["task_index"], r["episode"]): bool(r["success"]) for r in rows_b}
-            for r in rows_a:
-                sa, sb = bool(r["success"]), fixed[(r["task_index"], r["episode"])]
-                group = groups[first_cut(r["trace"]) or "none"]
+            for ra, rb in paired_rows(rows_a, rows_b):
+                sa, sb = bool(ra["success"]), bool(rb["success"])
+                group = groups[first_cut(ra["trace"]) or "none"]
                 group[0] += 1
                 group[1] += sa and not sb
                 group[2] += sb and not sa

@@ -135,8 +135,8 @@ def format_difference(cmp: dict, with_p: bool = True) -> str:
     return f"{text} (p {cmp['p_mcnemar']:.2g})" if with_p else text
 
 
-def paired_successes(rows_a: list[dict], rows_b: list[dict]) -> tuple[np.ndarray, np.ndarray]:
-    """Success vectors of two evaluations' episode rows (``episodes.jsonl``), aligned on (task index, episode);
+def paired_rows(rows_a: list[dict], rows_b: list[dict]) -> list[tuple[dict, dict]]:
+    """Two evaluations' episode rows (``episodes.jsonl``) paired on (task index, episode), in that order;
     raises unless both ran exactly the same episodes with the same seeds."""
     a = {(r["task_index"], r["episode"]): r for r in rows_a}
     b = {(r["task_index"], r["episode"]): r for r in rows_b}
@@ -147,4 +147,10 @@ def paired_successes(rows_a: list[dict], rows_b: list[dict]) -> tuple[np.ndarray
     seeds_differ = [k for k in keys if a[k]["seed"] != b[k]["seed"]]
     if seeds_differ:
         raise ValueError(f"the two evaluations ran other seeds for the same episodes (e.g. {seeds_differ[:5]})")
-    return (np.array([bool(a[k]["success"]) for k in keys]), np.array([bool(b[k]["success"]) for k in keys]))
+    return [(a[k], b[k]) for k in keys]
+
+
+def paired_successes(rows_a: list[dict], rows_b: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """Success vectors of two evaluations' episode rows, aligned by ``paired_rows``."""
+    pairs = paired_rows(rows_a, rows_b)
+    return (np.array([bool(ra["success"]) for ra, _ in pairs]), np.array([bool(rb["success"]) for _, rb in pairs]))
