@@ -215,9 +215,9 @@ class Benchmark:
         self._decide("failure_round", lambda: self.choose_round(hardest))
         # Most important first, with the report rewritten after each group, so a long run that is stopped
         # already reports the headline: main and round2 (the disturbances), then the other suites' policy (the
-        # long horizon), then unseen tasks, then the ablations.
-        groups = [("main", "round2"), ("others",), ("seen",),
-                  tuple(n for n in self.specs if n.startswith(("abl_", "demos_")))]
+        # long horizon), then unseen tasks, then the ablations (Tables 4-7), then the demonstration counts (Fig. 17).
+        groups = [("main", "round2"), ("others",), ("seen",), tuple(n for n in self.specs if n.startswith("abl_")),
+                  tuple(n for n in self.specs if n.startswith("demos_"))]
         for group in groups:
             for name in group:
                 self._ready(name)
