@@ -100,11 +100,12 @@ def local(run_dir):
     torch.set_num_threads(threads)
 
 
-def start_server(run_dir: Path, port: int, key_file: Path, log: Path) -> subprocess.Popen:
+def start_server(run_dir: Path, port: int, key_file: Path, log: Path, **options: float) -> subprocess.Popen:
+    extra = "".join(f", {k}={v!r}" for k, v in options.items())
     code = ("import logging, sys; logging.basicConfig(level=logging.INFO); "
             "from pivla.serving.server import ServeConfig, serve; "
             f"serve(ServeConfig(policy=sys.argv[1], port={port}, api_key_file=sys.argv[2], threads=1, "
-            f"max_message_bytes={MAX_MESSAGE}, max_batch={MAX_BATCH}))")
+            f"max_message_bytes={MAX_MESSAGE}, max_batch={MAX_BATCH}{extra}))")
     with log.open("wb") as out:
         proc = subprocess.Popen([sys.executable, "-c", code, str(run_dir), str(key_file)], stdout=out,
                                 stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"})
@@ -203,7 +204,8 @@ def test_metadata_and_round_trip_match_the_local_policy(server, local):
     assert meta["spec"] == spec_of(local).to_dict() and meta["spec"]["proprio"][0] == ["ee_pos", 3]
     assert meta["calibration"] == dataclasses.asdict(local.calibration)
     assert meta["action_stats"] == dataclasses.asdict(local.stats.action)
-    assert meta["limits"] == {"max_message_bytes": MAX_MESSAGE, "max_image_side": 1024, "max_batch": MAX_BATCH}
+    assert meta["limits"] == {"max_message_bytes": MAX_MESSAGE, "max_image_side": 1024, "max_batch": MAX_BATCH,
+                              "idle_timeout_s": 600.0}
     target = meta["target_encoder"]
     assert target["runtime"] == "onnx" and target["downsample"] == 2 and target["input_shape"] == [1, 1, 3, 16, 16]
     obs = observation(1, prompt_key="prompt")  # openpi's name for the instruction
@@ -331,6 +333,36 @@ def test_a_client_vanishing_mid_request_does_not_hurt_the_server(server, tmp_pat
     assert_serves(server)
 
 
+def test_an_idle_connection_is_closed_and_remote_policy_reconnects(run_dir, local, tmp_path):
+    """Silence for idle_timeout_s closes a connection (1001); steady requests keep one open past it."""
+    (tmp_path / "key").write_text(KEY + "\n")
+    port = free_port()
+    proc = start_server(run_dir, port, tmp_path / "key", tmp_path / "server.log", idle_timeout_s=1.5)
+    served = (port, proc)
+    try:
+        silent, busy = raw(served), raw(served)
+        obs = observation(5)
+        expected = local.infer(local_obs(obs))["actions"]
+        with RemotePolicy(f"127.0.0.1:{port}", api_key=KEY) as policy:
+            assert policy.metadata["limits"]["idle_timeout_s"] == 1.5
+            assert np.array_equal(policy.infer(obs)["actions"], expected)
+            start = time.monotonic()
+            while time.monotonic() - start < 3.5:
+                assert_serves(served, busy)
+                time.sleep(0.3)
+            with pytest.raises(ConnectionClosed) as e:
+                silent.recv(timeout=30)
+            assert e.value.rcvd.code == 1001 and "idle" in e.value.rcvd.reason
+            assert np.array_equal(policy.infer(obs)["actions"], expected)
+            assert policy.reconnects == 1
+        busy.close()
+    finally:
+        proc.terminate()
+        log = (tmp_path / "server.log").read_text()
+        assert proc.wait(30) == 0, log[-3000:]
+    assert "idle for 1.5 s: closing" in log and "ERROR" not in log and "Traceback" not in log, log[-3000:]
+
+
 # -- access -------------------------------------------------------------------------------------------
 def test_api_key_is_required_and_checked(server):
     url = f"ws://127.0.0.1:{server[0]}"
@@ -356,6 +388,8 @@ def test_non_loopback_without_a_key_is_refused_before_loading(tmp_path):
     for host in ("0.0.0.0", "::", "192.168.1.10", "robot-server"):
         with pytest.raises(ValueError, match="without an API key"):
             serve(ServeConfig(policy=str(tmp_path / "no-such-run"), host=host))
+    with pytest.raises(ValueError, match="idle_timeout_s: -1"):
+        serve(ServeConfig(policy=str(tmp_path / "no-such-run"), idle_timeout_s=-1))
     (tmp_path / "empty").write_text("\n")
     with pytest.raises(ValueError, match="one key"):
         serve(ServeConfig(policy=str(tmp_path), host="0.0.0.0", api_key_file=str(tmp_path / "empty")))

@@ -13,7 +13,7 @@ When the server has an API key, the opening request must carry ``Authorization: 
    cameras, whether the target latent reads the proprio); ``calibration``: AURD's thresholds (a dict, or None when the run was not calibrated);
    ``action_stats``: the action normalization (q01, q99, gripper_dim) that ``to_actions`` needs;
    ``target_encoder``: how a client computes AURD's observed latent (below); ``limits``:
-   max_message_bytes, max_image_side, max_batch; ``methods``: the request methods below.
+   max_message_bytes, max_image_side, max_batch, idle_timeout_s; ``methods``: the request methods below.
 
 2. Each **request** is one binary frame holding a map, answered in order by one binary frame:
 
@@ -37,7 +37,8 @@ When the server has an API key, the opening request must carry ``Authorization: 
 
 3. **Errors**: a request that cannot be answered gets one *text* frame instead, the problem in words (a
    bad request) or the server's traceback (a failure while answering); the connection stays open for the
-   next request. A message over ``max_message_bytes`` closes the connection (code 1009).
+   next request. A message over ``max_message_bytes`` closes the connection (code 1009); so does
+   ``idle_timeout_s`` without a request (code 1001, when it is not 0).
 
 **The target encoder travels to the client.** AURD encodes every new observation but queries the policy
 only when it replans, so encoding locally leaves only replans on the network. ``target_encoder`` in the

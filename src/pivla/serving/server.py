@@ -6,7 +6,7 @@ client (``openpi_client.websocket_client_policy.WebsocketClientPolicy``) works a
 with AURD's per-step target encoding on the client (the graph is handed out by the ``target_encoder`` method).
 
 Built on ``websockets``' asyncio server: one event loop does all network I/O (handshakes, the ``/healthz``
-check, pings, many idle connections, clients that vanish) and never runs the model, and one inference
+check, pings, many idle connections, clients that vanish or go silent) and never runs the model, and one inference
 worker thread answers the requests of all connections first come, first served (see the protocol). A
 thread per connection (the sync server) would need a lock around the model anyway, and would keep a thread
 per idle client; the loop also keeps answering health checks while a long inference runs.
@@ -41,7 +41,8 @@ from urllib.parse import urlsplit
 import numpy as np
 from websockets.asyncio.server import ServerConnection
 from websockets.asyncio.server import serve as ws_serve
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, ConnectionClosedOK
+from websockets.frames import CloseCode
 from websockets.http11 import Request, Response
 
 import pivla
@@ -80,6 +81,9 @@ class ServeConfig:
     """Observations per infer_batch / encode_batch request."""
     max_connections: int = 64
     """Open connections; more are answered HTTP 503."""
+    idle_timeout_s: float = 600.0
+    """A connection that sends nothing for this long is closed (code 1001), so clients that forget to close
+    do not use up max_connections; 0 keeps idle connections open. RemotePolicy reconnects transparently."""
     device: str = "cpu"
     """Where the policy runs: cpu, cuda, auto."""
     threads: int = 0
@@ -202,7 +206,7 @@ class PolicyService:
             "calibration": dataclasses.asdict(calibration) if calibration is not None else None,
             "action_stats": dataclasses.asdict(policy.stats.action), "target_encoder": target,
             "limits": {"max_message_bytes": cfg.max_message_bytes, "max_image_side": cfg.max_image_side,
-                       "max_batch": cfg.max_batch},
+                       "max_batch": cfg.max_batch, "idle_timeout_s": cfg.idle_timeout_s},
             "methods": list(P.METHODS),
         }
         self.metadata_frame = packb(self.metadata)
@@ -302,14 +306,21 @@ class _Server:
         loop = asyncio.get_running_loop()
         peer = ws.remote_address
         log.info("client %s connected", peer)
+        idle = self.cfg.idle_timeout_s or None
         try:
             await ws.send(self.service.metadata_frame)
-            async for message in ws:
+            while True:
+                try:
+                    message = await asyncio.wait_for(ws.recv(), idle)
+                except TimeoutError:
+                    log.info("client %s idle for %g s: closing", peer, idle)
+                    await ws.close(CloseCode.GOING_AWAY, f"idle for {idle:g} s")
+                    return
                 await ws.send(await loop.run_in_executor(self.worker, self.service.answer, message))
+        except ConnectionClosedOK:
+            log.info("client %s disconnected", peer)
         except ConnectionClosed as e:
             log.info("client %s gone (%s)", peer, e)
-        else:
-            log.info("client %s disconnected", peer)
 
     async def run(self) -> None:
         stop = asyncio.Event()
@@ -334,6 +345,8 @@ def serve(cfg: ServeConfig, policy: Any = None) -> None:
 
     Refuses, before loading anything, to bind a non-loopback host without an API key: the policy drives a
     robot, and anyone who reaches the port could query it."""
+    if not cfg.idle_timeout_s >= 0:
+        raise ValueError(f"ServeConfig.idle_timeout_s: {cfg.idle_timeout_s} (seconds >= 0; 0 keeps idle connections)")
     api_key = read_api_key(cfg.api_key_file)
     if api_key is None and not is_loopback(cfg.host):
         raise ValueError(f"refusing to serve on {cfg.host!r} without an API key: anyone who can reach the port "
