@@ -3,6 +3,7 @@ input (the server answers it and keeps serving), API keys, /healthz, concurrent 
 drop-in for a local policy (same actions step for step in the twin, same target latents), reconnection,
 openpi's published client, and a client import without PyTorch."""
 
+import contextlib
 import copy
 import dataclasses
 import hashlib
@@ -15,6 +16,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 
 import msgpack
@@ -100,40 +102,46 @@ def local(run_dir):
     torch.set_num_threads(threads)
 
 
-def start_server(run_dir: Path, port: int, key_file: Path, log: Path, **options: float) -> subprocess.Popen:
+@contextlib.contextmanager
+def running_server(run_dir: Path, directory: Path, **options: float) -> Iterator[tuple[int, subprocess.Popen]]:
+    """(port, process) of a server with the API key KEY, serving ``run_dir`` with ``options`` of ServeConfig and
+    logging to ``directory/server.log``; on exit it must stop cleanly on SIGTERM, with no error in its log (every
+    bad request and vanished client handled, none escaped as an error)."""
+    (directory / "key").write_text(KEY + "\n")
+    log = directory / "server.log"
+    port = free_port()
     extra = "".join(f", {k}={v!r}" for k, v in options.items())
     code = ("import logging, sys; logging.basicConfig(level=logging.INFO); "
             "from pivla.serving.server import ServeConfig, serve; "
             f"serve(ServeConfig(policy=sys.argv[1], port={port}, api_key_file=sys.argv[2], threads=1, "
             f"max_message_bytes={MAX_MESSAGE}, max_batch={MAX_BATCH}{extra}))")
     with log.open("wb") as out:
-        proc = subprocess.Popen([sys.executable, "-c", code, str(run_dir), str(key_file)], stdout=out,
+        proc = subprocess.Popen([sys.executable, "-c", code, str(run_dir), str(directory / "key")], stdout=out,
                                 stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    deadline = time.monotonic() + 120
-    while True:
-        try:
-            with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=5):
-                return proc
-        except OSError:
-            assert proc.poll() is None, f"server exited:\n{log.read_text()[-3000:]}"
-            assert time.monotonic() < deadline, f"server not up:\n{log.read_text()[-3000:]}"
-            time.sleep(0.2)
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=5):
+                    break
+            except OSError:
+                assert proc.poll() is None, f"server exited:\n{log.read_text()[-3000:]}"
+                assert time.monotonic() < deadline, f"server not up:\n{log.read_text()[-3000:]}"
+                time.sleep(0.2)
+        yield port, proc
+    finally:
+        proc.terminate()
+        returncode = proc.wait(30)
+    text = log.read_text()
+    assert returncode == 0, text[-3000:]
+    assert "ERROR" not in text and "Traceback" not in text, text[-3000:]
 
 
 @pytest.fixture(scope="module")
 def server(run_dir, local, tmp_path_factory):
-    """(port, process) of a server with an API key, serving the run; it must stop cleanly on SIGTERM, with no
-    error in its log."""
-    tmp = tmp_path_factory.mktemp("server")
-    (tmp / "key").write_text(KEY + "\n")
-    port = free_port()
-    proc = start_server(run_dir, port, tmp / "key", tmp / "server.log")
-    yield port, proc
-    proc.terminate()
-    log = (tmp / "server.log").read_text()
-    assert proc.wait(30) == 0, log[-3000:]
-    # every bad request and vanished client was handled, none escaped as an error
-    assert "ERROR" not in log and "Traceback" not in log, log[-3000:]
+    """(port, process) of a server with an API key, serving the run (``running_server``)."""
+    with running_server(run_dir, tmp_path_factory.mktemp("server")) as served:
+        yield served
 
 
 @pytest.fixture
@@ -335,15 +343,11 @@ def test_a_client_vanishing_mid_request_does_not_hurt_the_server(server, tmp_pat
 
 def test_an_idle_connection_is_closed_and_remote_policy_reconnects(run_dir, local, tmp_path):
     """Silence for idle_timeout_s closes a connection (1001); steady requests keep one open past it."""
-    (tmp_path / "key").write_text(KEY + "\n")
-    port = free_port()
-    proc = start_server(run_dir, port, tmp_path / "key", tmp_path / "server.log", idle_timeout_s=1.5)
-    served = (port, proc)
-    try:
+    with running_server(run_dir, tmp_path, idle_timeout_s=1.5) as served:
         silent, busy = raw(served), raw(served)
         obs = observation(5)
         expected = local.infer(local_obs(obs))["actions"]
-        with RemotePolicy(f"127.0.0.1:{port}", api_key=KEY) as policy:
+        with RemotePolicy(f"127.0.0.1:{served[0]}", api_key=KEY) as policy:
             assert policy.metadata["limits"]["idle_timeout_s"] == 1.5
             assert np.array_equal(policy.infer(obs)["actions"], expected)
             start = time.monotonic()
@@ -356,11 +360,7 @@ def test_an_idle_connection_is_closed_and_remote_policy_reconnects(run_dir, loca
             assert np.array_equal(policy.infer(obs)["actions"], expected)
             assert policy.reconnects == 1
         busy.close()
-    finally:
-        proc.terminate()
-        log = (tmp_path / "server.log").read_text()
-        assert proc.wait(30) == 0, log[-3000:]
-    assert "idle for 1.5 s: closing" in log and "ERROR" not in log and "Traceback" not in log, log[-3000:]
+    assert "idle for 1.5 s: closing" in (tmp_path / "server.log").read_text()
 
 
 # -- access -------------------------------------------------------------------------------------------
@@ -450,19 +450,12 @@ def test_a_latent_that_reads_the_proprio(tmp_path):
     moved = local.encode(pushed) - local.encode(obs)  # the run's proprio statistics: mean 0, std 1
     np.testing.assert_allclose(moved, np.eye(1, local.spec.latent_dim, local.spec.latent_dim - 8)[0] * 0.06 / np.sqrt(8),
                                atol=1e-6)
-    (tmp_path / "key").write_text(KEY + "\n")
-    port = free_port()
-    proc = start_server(run, port, tmp_path / "key", tmp_path / "server.log")
-    try:
-        with RemotePolicy(f"127.0.0.1:{port}", api_key=KEY) as remote:
-            assert remote.encoder_runtime == "server" and remote.spec.target_proprio
-            assert "ee_pos" in remote.wire_observation(obs, encode=True)
-            np.testing.assert_allclose(remote.encode(observation(3)), local.encode(obs), atol=1e-5)
-            np.testing.assert_allclose(remote.encode_batch([observation(3), observation(4)]),
-                                       local.encode_batch([obs, local_obs(observation(4))]), atol=1e-5)
-    finally:
-        proc.terminate()
-        assert proc.wait(30) == 0
+    with running_server(run, tmp_path) as (port, _), RemotePolicy(f"127.0.0.1:{port}", api_key=KEY) as remote:
+        assert remote.encoder_runtime == "server" and remote.spec.target_proprio
+        assert "ee_pos" in remote.wire_observation(obs, encode=True)
+        np.testing.assert_allclose(remote.encode(observation(3)), local.encode(obs), atol=1e-5)
+        np.testing.assert_allclose(remote.encode_batch([observation(3), observation(4)]),
+                                   local.encode_batch([obs, local_obs(observation(4))]), atol=1e-5)
 
 
 def test_two_clients_at_once(server, local):
