@@ -8,10 +8,13 @@ import numpy as np
 import pytest
 
 from pivla.envs.tabletop import make_env, parse_perturb, tasks
+from pivla.envs.rollout import run_episode
 from pivla.envs.tabletop.expert import make_expert
 from pivla.envs.tabletop.perturb import (
     DEFAULT_WINDOW,
     NEAR_DISTANCE,
+    RECOVERY_CM,
+    RECOVERY_WINDOW,
     TABLE_MATERIALS,
     TRAIN_FLOOR_RGB,
     TRAIN_LIGHT_TILT,
@@ -280,3 +283,46 @@ def test_servo_realism_runs_every_perturbation_at_once():
     drawer = make_env("drawer", "close_drawer", render=False, realism="servo", perturb="push_arm=3@near")
     _track(drawer, seed=0, actor=make_expert(), steps=20)
     assert [e["kind"] for e in drawer.perturber.events] == ["push_arm"]
+
+
+def test_recovery_disturbs_its_share_of_episodes_and_the_expert_recovers():
+    """Training data with the tests' events in it: about the share asked for is disturbed, by a distance and at a
+    step in the recovery ranges, and the expert (closed on the live state) still finishes those episodes."""
+    env = make_env("pick_place", "block_left", render=False, realism="servo", perturb="randomized_scene,recovery=0.5")
+    expert = make_expert(0.3, 0.3)
+    kinds, successes = [], 0
+    for seed in range(24):
+        ep = run_episode(env, expert, seed, frames=False)
+        kinds += [e["kind"] for e in env.perturber.events]
+        successes += ep.success
+        for plan in env.perturber._plans.values():
+            assert RECOVERY_CM[0] / 100 <= plan.distance <= RECOVERY_CM[1] / 100
+            assert RECOVERY_WINDOW[0] <= plan.step <= RECOVERY_WINDOW[1]
+    assert 6 <= len(kinds) <= 18 and set(kinds) == {"displace_object", "push_arm"}
+    assert successes >= 21
+    drawer = make_env("drawer", "open_drawer", render=False, perturb="recovery=1")  # no object: pushes only
+    for seed in range(4):
+        drawer.reset(seed=seed)
+        assert list(drawer.perturber._plans) == ["push_arm"]
+
+
+def test_recovery_leaves_every_other_draw_of_the_episode_as_it_was():
+    """Its stream is its own: the scene, the layout and a tested event are drawn the same with or without it."""
+    assert _digests("pick_place", "ball_left", "randomized_scene,recovery=0.5", "ideal", 3)[0] == UNCHANGED[2][5]
+    a = make_env("pick_place", "block_right", render=False, perturb="displace_object=4")
+    b = make_env("pick_place", "block_right", render=False, perturb="displace_object=4,recovery=1")
+    for seed in range(5):
+        a.reset(seed=seed)
+        b.reset(seed=seed)
+        assert a.perturber._plans["displace_object"] == b.perturber._plans["displace_object"]
+
+
+def test_recovery_spec_grammar():
+    cfg = parse_perturb("randomized_scene, recovery=0.4")
+    assert cfg.recovery == 0.4 and cfg.active and parse_perturb(cfg.spec()) == cfg
+    assert not parse_perturb("none").recovery
+    for bad in ("recovery=0", "recovery=1.5", "recovery=nan", "recovery=x", "recovery=0.2,recovery=0.3"):
+        with pytest.raises(ValueError, match="recovery"):
+            parse_perturb(bad)
+    with pytest.raises(ValueError, match="recovery"):
+        PerturbConfig(recovery=-0.1)

@@ -6,6 +6,7 @@ Spec grammar (``--perturb``), comma-separated, order-free, whitespace ignored::
     item   := "unseen_env" | "static_distractors" | "dynamic_distractors" | "camera_jitter"
             | "randomized_scene" | "level=" INT
             | "displace_object=" CM ["@" timing] | "push_arm=" CM ["@" timing]
+            | "recovery=" SHARE
     timing := "near" | INT "-" INT
 
 - ``unseen_env``: a table texture, table colour, floor and wall colours, light direction and light colour
@@ -41,6 +42,12 @@ Spec grammar (``--perturb``), comma-separated, order-free, whitespace ignored::
   ``NEAR_DISTANCE`` of the object (the drawer handle for drawer tasks), as the gripper closes in. A
   displacement waits (to the next step) while the object is held, touched or moving, or no spot is fit to
   land on; a push waits while no direction is reachable. Either fires at most once an episode.
+
+- ``recovery=P`` (training data): in a share P of the episodes, once, the object is displaced or the arm
+  pushed, one or the other evenly (only the push where the task has no object), by a distance drawn from
+  ``RECOVERY_CM`` at a step drawn from ``RECOVERY_WINDOW``: the mid-episode events the tests apply, with the
+  expert's recovery from them recorded (DART for disturbances rather than for noise). It draws from a stream of
+  its own; an explicit event of the same kind takes its place.
 
 "Unseen tasks" are not a perturbation of the scene but a task split: use the suite ``pick_place_unseen``
 (training on ``pick_place_seen``). The visual perturbations (all but the two events) have no collisions
@@ -89,6 +96,8 @@ _EPS = 1e-9
 EVENT_LEVELS_CM = (0, 2, 4, 6)  # the graded levels of displace_object and push_arm
 MAX_EVENT_CM = 10.0
 DEFAULT_WINDOW = (5, 7)
+RECOVERY_CM = (2.0, 8.0)  # distance range of a recovery event (training data), around the tested levels
+RECOVERY_WINDOW = (3, 25)  # its step range: the tests' window (5-7) and the rest of the approach
 NEAR_DISTANCE = 0.06  # m between the tool centre and the object's centre for "@near"
 FINGER_CLEARANCE = 0.005  # m kept between a displaced object and the fingers
 FINGER_HALF_WIDTH = 0.011  # m: a finger pad's largest horizontal half-size (assets/arm.xml)
@@ -158,6 +167,11 @@ class PerturbConfig:
     level: int = 0
     displace_object: DisplaceObject | None = None
     push_arm: PushArm | None = None
+    recovery: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.recovery) and 0.0 <= self.recovery <= 1.0):
+            raise ValueError(f"recovery: the share of disturbed episodes must be in 0..1, got {self.recovery}")
 
     @property
     def n_distractors(self) -> int:
@@ -183,11 +197,14 @@ class PerturbConfig:
             event = getattr(self, name)
             if event is not None:
                 items.append(f"{name}={event.distance * 100:g}{event.timing.spec()}")
+        if self.recovery:
+            items.append(f"recovery={self.recovery:g}")
         return ",".join(items) or "none"
 
     @property
     def active(self) -> bool:
         events = any(e is not None and e.distance > 0 for e in (self.displace_object, self.push_arm))
+        events = events or self.recovery > 0
         return self.unseen_env or self.camera_jitter or self.randomized_scene or self.n_distractors > 0 or events
 
 
@@ -221,6 +238,7 @@ def parse_perturb(spec: str | None) -> PerturbConfig:
     flags = dict.fromkeys(FLAGS, False)
     events: dict[str, DisplaceObject | PushArm] = {}
     level: int | None = None
+    recovery: float | None = None
     for raw in spec.split(","):
         item = raw.strip()
         if not item or item == "none":
@@ -232,6 +250,15 @@ def parse_perturb(spec: str | None) -> PerturbConfig:
             level = int(value)
             if not 0 <= level <= MAX_LEVEL:
                 raise ValueError(f"perturbation {item!r}: level must be in 0..{MAX_LEVEL}")
+        elif item.startswith("recovery="):
+            if recovery is not None:
+                raise ValueError(f"perturbation {item!r}: recovery given twice")
+            try:
+                recovery = float(item.split("=", 1)[1])
+            except ValueError:
+                recovery = float("nan")
+            if not 0.0 < recovery <= 1.0:  # NaN fails too
+                raise ValueError(f"perturbation {item!r}: recovery must be a share of episodes in (0, 1]")
         elif item.split("=", 1)[0].strip() in EVENTS and "=" in item:
             name, event = _parse_event(item)
             if name in events:
@@ -243,13 +270,13 @@ def parse_perturb(spec: str | None) -> PerturbConfig:
             raise ValueError("unseen tasks are a task split, not a scene perturbation: use --suite pick_place_unseen")
         else:
             raise ValueError(f"unknown perturbation {item!r}; known: {', '.join(FLAGS)}, level=N, "
-                             "displace_object=CM[@timing], push_arm=CM[@timing]")
+                             "displace_object=CM[@timing], push_arm=CM[@timing], recovery=SHARE")
     distract = flags["static_distractors"] or flags["dynamic_distractors"]
     if level is None:
         level = DEFAULT_LEVEL if distract else 0
     elif level > 0 and not distract:
         flags["static_distractors"] = True
-    return PerturbConfig(**flags, level=level, **events)
+    return PerturbConfig(**flags, level=level, **events, recovery=recovery or 0.0)
 
 
 def _random_colour(rng: np.random.Generator, avoid: list[np.ndarray]) -> np.ndarray:
@@ -411,11 +438,12 @@ class Perturber:
             self._footprint = _footprint_radius(tasks.OBJECTS[goal.obj]) + FINGER_HALF_WIDTH
         elif cfg.displace_object is not None:
             raise ValueError(f"displace_object: task {self.task.name!r} has no object to displace")
-        self.kin = arm.Kinematics() if cfg.push_arm is not None else None
+        self.kin = arm.Kinematics() if cfg.push_arm is not None or cfg.recovery > 0 else None
 
     def reset(self, data: mujoco.MjData, rng: np.random.Generator, keep_out: list[np.ndarray]) -> None:
         """Draw this episode's perturbation. ``keep_out``: xy points distractors must not cover."""
-        events_rng = dict(zip(EVENTS, rng.spawn(len(EVENTS))))  # own streams: no draw below changes
+        # own streams: no draw below changes (spawning a third child leaves the first two as they were)
+        events_rng = dict(zip((*EVENTS, "recovery"), rng.spawn(len(EVENTS) + 1)))
         m, c = self.model, self.clean
         m.cam_pos[self.cam], m.cam_quat[self.cam] = c["cam_pos"], c["cam_quat"]
         m.mat_rgba[:] = c["mat_rgba"]
@@ -441,6 +469,18 @@ class Perturber:
                 r = events_rng[name]
                 step = int(r.integers(event.timing.window[0], event.timing.window[1] + 1))
                 self._plans[name] = _Plan(event.distance, event.timing.trigger, step, float(r.uniform()))
+        if self.config.recovery > 0:
+            self._plan_recovery(events_rng["recovery"])
+
+    def _plan_recovery(self, r: np.random.Generator) -> None:
+        """This episode's recovery event, if it draws one (``recovery=P`` in the module docstring)."""
+        if r.uniform() >= self.config.recovery:
+            return
+        kinds = [k for k in EVENTS if k == "push_arm" or self.target is not None]
+        name = kinds[int(r.integers(len(kinds)))]
+        distance = float(r.uniform(*RECOVERY_CM)) / 100
+        step = int(r.integers(RECOVERY_WINDOW[0], RECOVERY_WINDOW[1] + 1))
+        self._plans.setdefault(name, _Plan(distance, "step", step, float(r.uniform())))
 
     def _training_scene(self, rng: np.random.Generator) -> None:
         """A training table (one of ``TRAIN_TABLE_MATERIALS``, random colour), floor, wall and key light."""
