@@ -7,11 +7,12 @@ never imports torch and ``pivla --help`` answers at once.
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 
 from pivla import __version__
-from pivla.cli.app import Command, Group, run
+from pivla.cli.app import DEBUG_ENV, Command, Group, run
 
 WORKFLOW = """pivla {version}: vision-language-action policies that predict their own future, notice when they are
 going wrong, and replan (PI-VLA: CMS model, unified IL + RL + state-prediction loss, AURD).
@@ -23,6 +24,7 @@ The workflow, on the simulated twin (every command has --help):
   pivla eval --policy runs/pp --out ev/aurd --executor aurd          success with 95% CIs, traces
   pivla report --dir ev                                              tables, paired comparisons, plots
 or all of it at once: pivla demo --out runs/demo
+A mistake in the input prints one line naming it; --debug anywhere on the line shows the traceback.
 """
 
 COMMANDS: dict[str, Command | Group] = {
@@ -86,6 +88,9 @@ def _exit_on_sigterm(signum: int, frame: object) -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    if "--debug" in argv[: argv.index("--") if "--" in argv else len(argv)]:
+        argv.remove("--debug")
+        os.environ[DEBUG_ENV] = "1"
     if argv[:1] == ["--version"]:
         print(f"pivla {__version__}")
         return 0

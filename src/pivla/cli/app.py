@@ -11,6 +11,7 @@ import dataclasses
 import importlib
 import inspect
 import logging
+import os
 import sys
 import typing
 from collections.abc import Callable
@@ -20,6 +21,11 @@ from typing import Any
 import tyro
 
 TYRO_CONFIG = (tyro.conf.CascadeSubcommandArgs,)  # a subcommand's options may follow its choice
+# What bad input raises (a missing or corrupt file, a wrong shape, NaN, an impossible setting): the message
+# names the problem, so a user sees that one line; a traceback is for --debug. Other exceptions are bugs and
+# keep theirs.
+USER_ERRORS = (ValueError, OSError)
+DEBUG_ENV = "PIVLA_DEBUG"
 
 
 @dataclass(frozen=True)
@@ -63,7 +69,18 @@ def run(tree: dict[str, Command | Group], argv: list[str], prog: str, intro: str
     cfg = tyro.cli(cls, args=_choice_shorthand(cls, rest), prog=f"{prog} {name}",
                    description=_description(fn, node), default=default, config=TYRO_CONFIG)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    return int(fn(cfg) or 0)
+    try:
+        return int(fn(cfg) or 0)
+    except USER_ERRORS as e:
+        if debugging():
+            raise
+        raise SystemExit(f"{prog} {name}: {type(e).__name__}: {e}\n"
+                         f"(--debug or {DEBUG_ENV}=1 shows the traceback)") from None
+
+
+def debugging() -> bool:
+    """Whether user errors show their traceback (``pivla --debug ...`` sets the variable)."""
+    return os.environ.get(DEBUG_ENV, "") not in ("", "0")
 
 
 def command_target(node: Command) -> tuple[Callable[[Any], int | None], type]:
