@@ -21,11 +21,13 @@ def test_bench_control_json(capsys):
 
 
 def test_bench_train_json_for_both_token_layouts_and_the_libero_preset(capsys):
-    for extra in ([], ["--grid-tokens"], ["--preset", "libero"]):
+    il_only = ["--loss.no-use-sp", "--loss.no-use-rl", "--loss.no-use-recon"]
+    for extra in ([], ["--grid-tokens"], ["--preset", "libero"], il_only):
         assert main(["bench", "train", "--steps", "4", "--batch-size", "2", "--threads", "1", "--json", *extra]) == 0
         out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert out["grid_tokens"] is ("--grid-tokens" in extra) and out["samples_per_s"] > 0
         assert (out["image_size"], out["cameras"]) == ((128, 2) if "--preset" in extra else (80, 2))
+        assert out["loss"]["use_sp"] is (extra != il_only)
 
 
 def test_bench_data_json(capsys, synthetic_data):

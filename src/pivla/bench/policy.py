@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -17,7 +17,7 @@ from pivla.data.synthetic import make_synthetic_dataset
 from pivla.data.text import WordTokenizer
 from pivla.model.cms import CMSModel
 from pivla.policy import Policy, load_policy
-from pivla.training.config import PRESETS, TrainConfig
+from pivla.training.config import PRESETS, LossConfig, TrainConfig
 from pivla.training.trainer import Trainer
 
 INSTRUCTION = "pick up the red block and move it to the left of the table"
@@ -103,13 +103,16 @@ class TrainBenchConfig:
     """The training preset whose model is timed (libero: two cameras at 128 px)."""
     mixed_precision: Literal["no", "bf16", "fp16"] = "no"
     """Autocast precision (bf16 runs on CPUs with AVX-512 BF16 or AMX at speed, emulated elsewhere)."""
+    loss: LossConfig = field(default_factory=LossConfig)
+    """The objective's terms (e.g. ``--loss.no-use-sp --loss.no-use-rl --loss.no-use-recon`` times IL only)."""
 
 
 def run_train_bench(cfg: TrainBenchConfig) -> dict:
     torch.set_num_threads(cfg.threads)
     with tempfile.TemporaryDirectory() as tmp:
         tc = dataclasses.replace(PRESETS[cfg.preset](), data=f"{tmp}/data", out=f"{tmp}/run", steps=cfg.steps,
-                                 batch_size=cfg.batch_size, progress=False, mixed_precision=cfg.mixed_precision)
+                                 batch_size=cfg.batch_size, progress=False, mixed_precision=cfg.mixed_precision,
+                                 loss=cfg.loss)
         tc.model.backbone.grid_tokens = cfg.grid_tokens
         make_synthetic_dataset(f"{tmp}/data", episodes_per_goal=4, T=40, size=tc.model.image_size)
         trainer = Trainer(tc)
@@ -123,4 +126,4 @@ def run_train_bench(cfg: TrainBenchConfig) -> dict:
     return {"train_step_s_median": round(med, 4), "samples_per_s": round(cfg.batch_size / med, 1),
             "batch_size": cfg.batch_size, "threads": cfg.threads, "grid_tokens": cfg.grid_tokens,
             "preset": cfg.preset, "image_size": tc.model.image_size, "cameras": len(tc.model.cameras),
-            "mixed_precision": cfg.mixed_precision}
+            "mixed_precision": cfg.mixed_precision, "loss": dataclasses.asdict(cfg.loss)}
