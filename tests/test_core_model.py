@@ -95,6 +95,26 @@ def test_each_term_reaches_only_its_heads(term, expected):
     assert _grads(m, loss) == expected
 
 
+def test_auxiliary_terms_off_the_trunk_train_only_their_heads():
+    """aux_on_trunk=False: L_RL (then the critic alone) and L_SP reach the value head and the state predictor, never
+    the backbone or an action head, and the full loss's backbone gradient is imitation's exactly."""
+    torch.manual_seed(0)
+    m = CMSModel(CFG, vocab_size=12)
+    b = fake_batch()
+    cfg = LossConfig(aux_on_trunk=False, use_recon=False)
+    out = m(b, aux_on_trunk=False)
+    full, logs = unified_loss(m, out, b, cfg)
+    il, _ = unified_loss(m, out, b, LossConfig(use_rl=False, use_sp=False, use_recon=False))
+    assert "rl_actor" not in logs and "rl_critic" in logs and "sp" in logs
+    assert _grads(m, full - il) == {"value", "state"}
+    full, _ = unified_loss(m, m(b, aux_on_trunk=False), b, cfg)
+    _grads(m, full)
+    with_aux = [p.grad.clone() for p in m.backbone.parameters()]
+    il, _ = unified_loss(m, m(b), b, LossConfig(use_rl=False, use_sp=False, use_recon=False))
+    _grads(m, il)
+    assert all(torch.allclose(a, p.grad, atol=1e-7) for a, p in zip(with_aux, m.backbone.parameters()))
+
+
 def test_ema_target_moves_towards_online_encoder():
     torch.manual_seed(0)
     m = CMSModel(CFG, vocab_size=12)

@@ -242,14 +242,17 @@ class CMSModel(nn.Module):
         self.log_sigma = nn.Parameter(torch.zeros(cfg.action_dim))
         self.register_buffer("bin_centers", torch.from_numpy(bin_centers(cfg.n_bins)), persistent=False)
 
-    def forward(self, batch: dict[str, torch.Tensor]) -> CMSOutput:
+    def forward(self, batch: dict[str, torch.Tensor], aux_on_trunk: bool = True) -> CMSOutput:
+        """``aux_on_trunk=False`` gives the value head and the state predictor stop-gradient features: their losses
+        then train those heads only, and the shared trunk learns from the action heads alone."""
         h_cog, h_mot = self.backbone(batch)
         continuous = self.continuous_head(h_mot)
-        v = self.value_head(h_cog)
+        aux = h_cog if aux_on_trunk else h_cog.detach()
+        v = self.value_head(aux)
         return CMSOutput(
             logits=self.discrete_head(h_mot),
             continuous=continuous,
-            latents=self.state_predictor(h_cog, continuous),
+            latents=self.state_predictor(aux, continuous),
             values=v[:, 1:],
             value_now=v[:, 0],
             h_cog=h_cog,

@@ -39,6 +39,11 @@ class LossConfig:
     """Add the latent state-prediction term."""
     use_recon: bool = True
     """Train the inspection decoder g on predicted latents."""
+    aux_on_trunk: bool = True
+    """L_RL and L_SP train the shared backbone with the action heads (Eq. 8). Off: imitation alone shapes the
+    backbone; the critic and the state predictor learn on stop-gradient features, so the value and the
+    predicted latents AURD reads are still trained, and the actor term, which acts only through the
+    continuous head, is dropped (docs/experiments.md#auxiliary-terms-on-stop-gradient-features)."""
     sp_steps: int = 1
     """Chunk steps per sample whose next observation is encoded for L_SP. One, not two: the same expected
     loss and 1.04-1.12x faster training at equal validation success (docs/experiments.md#one-state-prediction-step)."""

@@ -81,18 +81,22 @@ def reconstruction_loss(decoded: torch.Tensor, target_images: torch.Tensor, mask
 
 def unified_loss(model: CMSModel, out: CMSOutput, batch: dict[str, torch.Tensor],
                  cfg: LossConfig) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Eq. 8: L = L_IL + alpha * L_RL + beta * L_SP (+ the decoder's own reconstruction loss)."""
+    """Eq. 8: L = L_IL + alpha * L_RL + beta * L_SP (+ the decoder's own reconstruction loss). With
+    ``cfg.aux_on_trunk`` off, ``out`` comes from ``model(batch, aux_on_trunk=False)`` and L_RL is the critic's."""
     il_mask = batch["action_mask"] * batch["imitate"].unsqueeze(1)
     l_il, logs = imitation_loss(out.logits, out.continuous, batch["bins"], batch["actions"], il_mask,
                                 cfg.lam, cfg.use_discrete, cfg.use_continuous)
     total = l_il
     logs["il"] = l_il.detach()
     if cfg.use_rl and cfg.alpha > 0:
-        l_actor = actor_loss(out.continuous, model.log_sigma, batch["actions"], batch["advantages"], batch["action_mask"])
+        # the actor moves the continuous head, and through it the trunk: it is off when the trunk is imitation's
+        l_actor = actor_loss(out.continuous, model.log_sigma, batch["actions"], batch["advantages"],
+                             batch["action_mask"]) if cfg.aux_on_trunk else None
         l_critic = critic_loss(out.values, out.value_now, batch["returns"], batch["value_mask"])
-        l_rl = l_actor + cfg.critic_coef * l_critic
+        l_rl = cfg.critic_coef * l_critic if l_actor is None else l_actor + cfg.critic_coef * l_critic
+        logs.update(rl_critic=l_critic.detach(), **({} if l_actor is None else {"rl_actor": l_actor.detach()}))
         total = total + cfg.alpha * l_rl
-        logs.update(rl=l_rl.detach(), rl_actor=l_actor.detach(), rl_critic=l_critic.detach())
+        logs["rl"] = l_rl.detach()
     if cfg.use_sp or cfg.use_recon:
         idx = batch["sp_index"]
         pred = torch.gather(out.latents, 1, idx.unsqueeze(-1).expand(-1, -1, out.latents.shape[-1]))

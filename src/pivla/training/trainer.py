@@ -314,7 +314,7 @@ class Trainer:
             sync = micro == cfg.grad_accum - 1
             ctx = acc.no_sync(self.ddp_model) if not sync else contextlib.nullcontext()
             with ctx, acc.autocast():
-                out = self.ddp_model(batch)
+                out = self.ddp_model(batch, aux_on_trunk=cfg.loss.aux_on_trunk)
                 loss, logs = unified_loss(self.model, out, batch, cfg.loss)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"non-finite loss at step {self.step}: { {k: float(v) for k, v in logs.items()} }")
