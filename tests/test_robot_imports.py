@@ -1,14 +1,16 @@
 """The arm stack runs on a robot laptop's client-only install: neither MuJoCo nor torch is imported by the
-serial link, protocol, safety layer, calibration, the arm driver, RobotEnv or the repeatability measurement,
-and with both made unimportable the whole stack drives a (fake) board end to end. Only the twin-backed
-modules (``pivla.robot.sim``, ``pivla.robot.autocollect``) need MuJoCo."""
+serial link, protocol, safety layer, calibration, the arm driver, RobotEnv, the repeatability measurement or
+the SO-101's bus, driver and port finder, and with both made unimportable the whole stack drives a (fake)
+board end to end. Only the twin-backed modules (``pivla.robot.sim``, ``pivla.robot.autocollect``) need
+MuJoCo."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
 
-CLIENT_MODULES = ("link", "protocol", "safety", "calibration", "robot", "env", "repeatability")
+CLIENT_MODULES = ("link", "protocol", "safety", "calibration", "robot", "env", "repeatability", "feetech", "simbus",
+                  "so101", "ports")
 HEAVY = ("mujoco", "torch")
 
 

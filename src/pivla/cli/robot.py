@@ -1,7 +1,8 @@
 """``pivla robot ...``: the real arm (or its simulated twin with ``--sim``) from the terminal.
 
-Subcommands: simboard, check, calibrate-servos, home, teleop, record, run, repeatability, autocollect.
-docs/robot.md walks through them in the order a maker uses them.
+Subcommands: simboard, find-port, check, calibrate-servos, home, teleop, record, run, repeatability,
+autocollect. docs/robot.md walks through them in the order a maker uses them; ``check`` and ``find-port``
+also serve the SO-101 (``--robot so101``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import time
 import tty
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 import tyro
@@ -130,15 +131,23 @@ def simboard(cfg: SimboardConfig) -> int:
 
 @dataclass
 class CheckConfig:
-    """A board's identity, state, configuration and limits."""
+    """A board's identity, state, configuration and limits; or an SO-101's six joint positions."""
 
     port: str
-    """Serial port of the board."""
+    """Serial port of the board (or of the SO-101's servo bus)."""
     bench: int = 0
     """Also time this many round trips."""
+    robot: Literal["pivla-arm", "so101"] = "pivla-arm"
+    """Which arm is on the port."""
+    calibration: str | None = None
+    """SO-101: its LeRobot calibration file, for positions in degrees (gripper 0..100)."""
+    arm_id: str | None = None
+    """SO-101: the arm's id; its calibration is read from LeRobot's folder unless --calibration is given."""
 
 
 def check(cfg: CheckConfig) -> int:
+    if cfg.robot == "so101":
+        return _check_so101(cfg)
     from pivla.bench.robot import measure
     from pivla.robot.link import Board
 
@@ -151,6 +160,58 @@ def check(cfg: CheckConfig) -> int:
     finally:
         board.close()
     print(json.dumps(report, default=str, indent=2))
+    return 0
+
+
+def _check_so101(cfg: CheckConfig) -> int:
+    from pivla.robot import so101
+    from pivla.robot.calibration import CalibrationError
+    from pivla.robot.feetech import BusConfig, BusError
+
+    try:
+        path = cfg.calibration or (so101.default_calibration_path(cfg.arm_id) if cfg.arm_id else None)
+        calib = so101.SO101Calibration.load(path, cfg.arm_id) if path else None
+        rows = so101.check(BusConfig(cfg.port), calib)
+        bench = _bench_so101(cfg, calib) if cfg.bench else None
+    except CalibrationError as exc:
+        raise SystemExit(str(exc)) from exc
+    except BusError as exc:
+        raise SystemExit(f"no SO-101 answers on {cfg.port}: {exc}") from exc
+    for r in rows:
+        pos = f"{r['position']:8.2f} {r['unit']}" if "position" in r else "(no calibration: ticks only)"
+        print(f"{r['motor']:<14} id {r['id']}  model {r['model']}  ticks {r['ticks']:4d}  {pos}")
+    if bench:
+        print(json.dumps(bench, indent=2))
+    return 0
+
+
+def _bench_so101(cfg: CheckConfig, calib):
+    from pivla.bench.robot import measure_so101
+    from pivla.robot.feetech import BusConfig
+    from pivla.robot.so101 import SO101, SO101Config
+
+    if calib is None:
+        raise SystemExit("--bench on an SO-101 sends goals: give its --calibration so that they pass its limits")
+    with SO101.open(BusConfig(cfg.port), calib, SO101Config(watchdog_s=0.0)) as arm:
+        return measure_so101(arm, cfg.bench)
+
+
+@dataclass
+class FindPortConfig:
+    """Find the arm's serial port: the one that goes away when its USB cable is unplugged."""
+
+    settle_s: float = 0.5
+    """Wait this long after Enter before listing the ports again."""
+
+
+def find_port(cfg: FindPortConfig) -> int:
+    from pivla.robot.ports import PortNotFound, find_port
+
+    try:
+        port = find_port(input, cfg.settle_s)
+    except PortNotFound as exc:
+        raise SystemExit(str(exc)) from exc
+    print(f"the arm's port is {port}; plug the cable back in")
     return 0
 
 
