@@ -66,6 +66,7 @@ COMMANDS: dict[str, Command | Group] = {
     }),
     "robot": Group("the real arm (or its twin with --sim)", {
         "simboard": Command("pivla.cli.robot", "simboard", "run the firmware on a simulated Uno; prints its port"),
+        "simbus": Command("pivla.cli.robot", "simbus", "serve a simulated SO-101 servo bus; prints its port"),
         "find-port": Command("pivla.cli.robot", "find_port", "find the arm's serial port by unplugging its cable"),
         "check": Command("pivla.cli.robot", "check",
                          "ping the board: version, state, config, limits (--robot so101: the six joint positions)"),

@@ -1,6 +1,6 @@
 """``pivla robot ...``: the real arm (or its simulated twin with ``--sim``) from the terminal.
 
-Subcommands: simboard, find-port, check, calibrate-servos, home, teleop, record, run, repeatability,
+Subcommands: simboard, simbus, find-port, check, calibrate-servos, home, teleop, record, run, repeatability,
 autocollect. docs/robot.md walks through them in the order a maker uses them; ``check`` and ``find-port``
 also serve the SO-101 (``--robot so101``).
 """
@@ -124,6 +124,27 @@ def simboard(cfg: SimboardConfig) -> int:
                 if cfg.pulses and sb.pulses != last:
                     last = sb.pulses
                     print("pulses_us " + " ".join(f"{w:.1f}" for w in last), flush=True)
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+@dataclass
+class SimBusCommand:
+    """A simulated SO-101 bus (six STS3215 servos on a pseudo-terminal); prints its serial port first."""
+
+    baudrate: int = 1_000_000
+    """Replies are paced to this bit rate (0: as fast as the host reads)."""
+
+
+def simbus(cfg: SimBusCommand) -> int:
+    from pivla.robot.simbus import SimBus, SimBusConfig
+
+    with SimBus(SimBusConfig(baudrate=cfg.baudrate)) as sim:
+        print(sim.port, flush=True)
+        try:
+            while True:
+                time.sleep(1.0)
         except KeyboardInterrupt:
             pass
     return 0
