@@ -239,6 +239,15 @@ def test_check_prints_the_six_joint_positions(sim, tmp_path, capsys):
     assert sim.register(1, F.TORQUE_ENABLE) == 0  # check only reads
 
 
+def test_check_finds_the_calibration_in_lerobots_folder(sim, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("HF_LEROBOT_CALIBRATION", str(tmp_path))
+    calibration().save(tmp_path / "robots" / "so101_follower" / "follower.json")
+    assert main(["robot", "check", "--robot", "so101", "--port", sim.port, "--arm-id", "follower"]) == 0
+    assert capsys.readouterr().out.splitlines()[5].endswith("50.00 %")
+    with pytest.raises(SystemExit, match="calibration file not found: .*leader.json"):
+        main(["robot", "check", "--robot", "so101", "--port", sim.port, "--arm-id", "leader"])
+
+
 def test_check_without_an_arm_exits_with_one_line(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "pivla", "robot", "check", "--robot", "so101", "--port",
                            str(tmp_path / "ttyNone")], capture_output=True, text=True, timeout=60, check=False)

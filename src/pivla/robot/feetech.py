@@ -185,11 +185,12 @@ def _hex(data: bytes, limit: int = 24) -> str:
 # ------------------------------------------------------------------------------------------------ host bus
 @dataclass
 class BusConfig:
-    """The serial side of a Feetech bus. ``reply_timeout_ms`` is added to a reply's wire time."""
+    """The serial side of a Feetech bus."""
 
     port: str
     baudrate: int = 1_000_000
-    reply_timeout_ms: float = 20.0
+    reply_timeout_ms: float = 34.0
+    """Added to a reply's wire time before it counts as missing (the SDK's budget for a 16 ms USB latency timer)."""
     retries: int = 0
     """Extra attempts of a transaction that expects replies before its failure is raised."""
 
@@ -393,7 +394,7 @@ class FeetechBus:
 
 def _make_port(sdk, config: BusConfig, bus: FeetechBus):
     """The SDK's port handler, keeping each transaction's received bytes, waiting on the file descriptor
-    instead of spinning, and with a configurable reply timeout (the SDK's assumes a 16 ms USB latency)."""
+    instead of spinning, and with the configured reply timeout."""
 
     class Port(sdk.PortHandler):
         def __init__(self) -> None:

@@ -66,7 +66,7 @@ class JointGuard:
                    f"[{self.lower[i]:.3f}, {self.upper[i]:.3f}]")
             if self.on_limit == "refuse":
                 raise SafetyError(msg)
-            log.warning("%s: clipped", msg)
+            log.debug("%s: clipped", msg)  # the caller gets the clipped target back
         return np.clip(q, self.lower, self.upper)
 
     def step(self, q: np.ndarray, q_from: np.ndarray | None, bound) -> np.ndarray:

@@ -54,12 +54,15 @@ class MotorCalibration:
 
 
 def default_calibration_path(arm_id: str) -> Path:
-    """Where LeRobot keeps an SO-101 follower's calibration: ``$HF_LEROBOT_CALIBRATION/robots/so101_follower``."""
+    """Where LeRobot keeps an SO-101 follower's calibration: ``$HF_LEROBOT_CALIBRATION/robots/so101_follower``
+    (``so_follower`` in newer LeRobot releases, used when only that file exists)."""
     root = os.environ.get("HF_LEROBOT_CALIBRATION")
     if root is None:
         home = os.environ.get("HF_LEROBOT_HOME") or Path(os.environ.get("HF_HOME", "~/.cache/huggingface")) / "lerobot"
         root = Path(home).expanduser() / "calibration"
-    return Path(root) / "robots" / ROBOT_TYPE / f"{arm_id}.json"
+    path = Path(root) / "robots" / ROBOT_TYPE / f"{arm_id}.json"
+    newer = Path(root) / "robots" / "so_follower" / f"{arm_id}.json"
+    return newer if newer.exists() and not path.exists() else path
 
 
 @dataclass
