@@ -194,6 +194,7 @@ class LiberoEnv(gym.Env):
     """One LIBERO task as a gymnasium env with pivla's observation and action conventions."""
 
     metadata = {"render_modes": []}
+    control_hz = 20  # robosuite's control_freq, which ControlEnv keeps by default: one action per 50 ms
 
     def __init__(self, suite: str, task: int | str, config: LiberoEnvConfig = LiberoEnvConfig(),
                  init_state: int | None = None, seed: int | None = None) -> None:
