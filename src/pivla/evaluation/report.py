@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from pivla.evaluation.runner import load_rows
+from pivla.evaluation.runner import acting_rows, load_rows
 from pivla.evaluation.stats import compare, format_difference, paired_successes
 from pivla.io import atomic_write_bytes
 
@@ -53,6 +53,17 @@ def save_figure(fig: Figure, path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+def fmt(x: float | None, digits: int = 2) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def _execution(execution: dict | None) -> str:
+    """An evaluation's execution mode in a few words: sync, or async with its threshold and seam."""
+    if not execution or execution.get("name") != "async":
+        return "sync"
+    return f"async g={execution['threshold']} {execution['seam']}"
+
+
 def _level(condition: str) -> int | None:
     m = re.fullmatch(r"distraction_level_(\d+)", condition)
     return int(m.group(1)) if m else None
@@ -62,7 +73,7 @@ def plot_timeline(row: dict, calib: dict | None, path: Path) -> None:
     """Paper Fig. 15: U, U_act, U_pred over one episode, thresholds, and where AURD replanned, pruned or
     paused; a cut plan's untrusted step (never executed, so not on the curves) is marked by its U, and the
     steps of plans AURD committed to after a cut (run unchecked) are shaded."""
-    tr = row["trace"]
+    tr = acting_rows(row["trace"])
     t = np.array([r["t"] for r in tr])
     fig, ax = new_figure((8, 3.2))
     ax.plot(t, [r.get("u", np.nan) for r in tr], label="U", color="k")
@@ -176,10 +187,23 @@ def write_report(root: str | Path) -> Path:
     for (c, e), r in sorted(results.items()):
         lines.append(f"| {c} | {e} | {r['mean_executed_horizon']:.2f} | {r['replans']} | {r['prunes']} | {r['pauses']} | "
                      f"{r['plans']} | {r['control_hz']:.0f} |")
+    timed = {k: r for k, r in sorted(results.items()) if "idle_steps" in r}
+    if timed:
+        lines += ["", "## Latency and execution", "",
+                  ("Per evaluation (docs/latency.md): steps to success over the successes, the share of steps the arm "
+                   "held waiting for a chunk, policy queries per minute of control, the mean jerk at chunk seams "
+                   "(action units per step^2), and the chunks dropped: stale (arrived past all of their actions), out "
+                   "of order (not the observation in flight), queries the link lost."), "",
+                  ("| condition | executor | execution | latency ms | success | steps to success | idle | queries/min "
+                   "| seam jerk | stale | out of order | lost |"), "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for (c, e), r in timed.items():
+            lines.append(f"| {c} | {e} | {_execution(r.get('execution'))} | {r.get('latency_ms', '0')} | "
+                         f"{100 * r['success_rate']:.1f}% | {fmt(r['steps_to_success_mean'], 1)} | "
+                         f"{100 * r['idle_fraction']:.1f}% | {fmt(r['queries_per_minute'], 1)} | {fmt(r['seam_jerk'], 3)} | "
+                         f"{r['stale_chunks']} | {r['out_of_order_chunks']} | {r['failed_queries']} |")
     lines += ["", "## Failure prediction (AUROC of the episode's signals for predicting failure)", "",
               "| condition | executor | AUROC max U | AUROC mean U | AUROC -min V | failures | flagged (U > tau_high) | mean lead (steps) |",
               "|---|---|---|---|---|---|---|---|"]
-    fmt = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
     for (c, e), r in sorted(results.items()):
         fp = r.get("failure_prediction", {})
         lines.append(f"| {c} | {e} | {fmt(fp.get('auroc_u_max'))} | {fmt(fp.get('auroc_u_mean'))} | {fmt(fp.get('auroc_neg_v_min'))} | "

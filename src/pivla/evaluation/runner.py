@@ -24,6 +24,7 @@ import torch
 from tqdm import tqdm
 
 from pivla.control import run_episode
+from pivla.control.asynchronous import ExecutionConfig, SyncConfig, check_execution
 from pivla.control.contract import DEFAULT_ETA
 from pivla.control.executors import (
     AURDConfig,
@@ -31,6 +32,7 @@ from pivla.control.executors import (
     config_to_dict,
     make_executor,
 )
+from pivla.control.latency import parse_latency
 from pivla.data.format import read_episodes, write_episodes
 from pivla.envs import family, make_env, seeds, select_tasks
 from pivla.envs.rollout import episode_seed
@@ -60,6 +62,13 @@ class EvalConfig:
     executor: ExecutorConfig = field(default_factory=AURDConfig)
     """How chunks become actions: --executor aurd | fixed | ensemble | adahorizon, then its options
     (e.g. --executor fixed --executor.horizon 3)."""
+    execution: ExecutionConfig = field(default_factory=SyncConfig)
+    """When queries go out: --execution sync (wait for each chunk, the arm holding pose) or async (the next query
+    in flight while the current chunk executes; then --execution.threshold, --execution.seam; docs/latency.md)."""
+    latency_ms: str = "0"
+    """Policy latency in control time: MEAN[:JITTER] ms, lognormal, drawn per query from the episode's seed (e.g. 200
+    or 200:50; the simulation keeps stepping meanwhile); or real: measured on the wall clock with the loop paced at
+    the env's control rate (a served policy, pivla serve --delay-ms)."""
     episodes: int = 10
     """Episodes per task."""
     seed: int = 1000
@@ -99,8 +108,9 @@ class EvalConfig:
 
 
 def config_dict(cfg: EvalConfig) -> dict[str, Any]:
-    """The evaluation's settings as JSON, the executor with its name."""
-    return {**asdict(cfg), "executor": config_to_dict(cfg.executor)}
+    """The evaluation's settings as JSON, the executor and the execution mode with their names."""
+    return {**asdict(cfg), "executor": config_to_dict(cfg.executor),
+            "execution": {"name": cfg.execution.kind, **asdict(cfg.execution)}}
 
 
 def eval_threads(workers: int) -> int:
@@ -171,7 +181,7 @@ def _run_job(job: tuple[int, str, int, bool]) -> dict:
                    else {"init_state": cfg.first_init_state + episode})
     result = run_episode(_env(task_index), policy, make_executor(cfg.executor), seed=seed,
                          max_steps=cfg.max_steps, keep_episode=keep_frames or cfg.record is not None,
-                         reset_options=options)
+                         reset_options=options, execution=cfg.execution, latency=cfg.latency_ms)
     row = {"task": task_name, "task_index": task_index, "episode": episode, **(options or {}), **result.summary(),
            "wall_s": time.perf_counter() - t0, "encoder_runtime": getattr(policy, "encoder_runtime", "client"), "trace": result.trace,
            "plan_events": result.plans}
@@ -200,9 +210,14 @@ def auroc(scores: np.ndarray, labels: np.ndarray) -> float | None:
     return float(greater / (len(pos) * len(neg)))
 
 
+def acting_rows(trace: list[dict]) -> list[dict]:
+    """The trace rows of steps that executed a chunk's action (not the idle steps spent waiting for one)."""
+    return [row for row in trace if not row.get("idle")]
+
+
 def episode_uncertainty(trace: list[dict]) -> np.ndarray:
-    """Per-step U (AURD) or U_act (executors that do not encode observations)."""
-    return np.array([row["u"] if "u" in row else row["u_act"] for row in trace], float)
+    """Per-step U (AURD) or U_act (executors that do not encode observations), idle steps left out."""
+    return np.array([row["u"] if "u" in row else row["u_act"] for row in acting_rows(trace)], float)
 
 
 def _leads(rows: list[dict], flagged: Callable[[dict], np.ndarray]) -> tuple[list[int], int]:
@@ -226,11 +241,11 @@ def failure_prediction(rows: list[dict], tau_high: float | None, v_thresh: float
     failed = np.array([not r["success"] for r in rows])
     u_max = np.array([episode_uncertainty(r["trace"]).max(initial=0.0) for r in rows])
     u_mean = np.array([episode_uncertainty(r["trace"]).mean() if r["trace"] else 0.0 for r in rows])
-    v_min = np.array([min((row["v"] for row in r["trace"]), default=0.0) for r in rows])
+    v_min = np.array([min((row["v"] for row in acting_rows(r["trace"])), default=0.0) for r in rows])
     out = {"auroc_u_max": auroc(u_max, failed), "auroc_u_mean": auroc(u_mean, failed), "auroc_neg_v_min": auroc(-v_min, failed),
            "failures": int(failed.sum())}
     signals = (("failure", tau_high, lambda r: episode_uncertainty(r["trace"]) > tau_high),
-               ("v_failure", v_thresh, lambda r: np.array([row["v"] for row in r["trace"]], float) < v_thresh))
+               ("v_failure", v_thresh, lambda r: np.array([row["v"] for row in acting_rows(r["trace"])], float) < v_thresh))
     for prefix, threshold, flagged in signals:
         if threshold is not None:
             leads, false_alarms = _leads(rows, flagged)
@@ -284,6 +299,33 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None, v_thres
         "failure_stages": failure_stages(rows),
         # episodes in which a mid-episode perturbation actually fired (a small displacement can come too late)
         "perturbed_episodes": sum(bool(r.get("perturb_events")) for r in rows),
+        "execution": {"name": cfg.execution.kind, **asdict(cfg.execution)}, "latency_ms": cfg.latency_ms,
+        **timing_aggregate(rows),
+    }
+
+
+def timing_aggregate(rows: list[dict]) -> dict:
+    """Latency's cost over the episodes that recorded it (control.runner.EpisodeResult.timing_summary): mean steps
+    to success, idle steps and their share, queries per minute of control, mean jerk over all seams, chunks
+    not executed, mean query-to-answer delay in steps."""
+    timed = [r for r in rows if "idle_steps" in r]
+    if not timed:
+        return {}
+    steps = sum(r["steps"] for r in timed)
+    minutes = sum(r["steps"] / r["env_control_hz"] / 60 for r in timed if r.get("env_control_hz"))
+    to_success = [r["steps_to_success"] for r in timed if r["steps_to_success"] is not None]
+    seams = sum(r["seams"] for r in timed)
+    delays = [r["delay_steps_mean"] for r in timed if r["delay_steps_mean"] is not None]
+    return {
+        "steps_to_success_mean": float(np.mean(to_success)) if to_success else None,
+        "idle_steps": sum(r["idle_steps"] for r in timed),
+        "idle_fraction": sum(r["idle_steps"] for r in timed) / steps if steps else 0.0,
+        "queries_per_minute": sum(r["queries"] for r in timed) / minutes if minutes else None,
+        "seam_jerk": sum(r["seam_jerk"] * r["seams"] for r in timed if r["seams"]) / seams if seams else None,
+        "stale_chunks": sum(r["stale_chunks"] for r in timed),
+        "out_of_order_chunks": sum(r["out_of_order_chunks"] for r in timed),
+        "failed_queries": sum(r["failed_queries"] for r in timed),
+        "delay_steps_mean": float(np.mean(delays)) if delays else None,
     }
 
 
@@ -339,6 +381,14 @@ def _check_settings(cfg: EvalConfig) -> None:
         make_executor(cfg.executor)
     except (TypeError, ValueError) as e:
         raise SystemExit(f"executor {cfg.executor}: {e}") from e
+    try:
+        parse_latency(cfg.latency_ms)
+    except ValueError as e:
+        raise SystemExit(f"--latency-ms {e}") from None
+    try:
+        check_execution(cfg.execution, cfg.executor)
+    except ValueError as e:
+        raise SystemExit(f"--execution {cfg.execution.kind}: {e}") from None
     if cfg.seed_family is not None:
         if cfg.seed_family not in FAMILY_OF_SPLIT[cfg.split]:
             raise SystemExit(f"seed family {cfg.seed_family!r} cannot give {cfg.split} episodes (allowed: "
