@@ -496,6 +496,37 @@ def test_remote_twin_episode_equals_the_local_one_step_for_step(remote, local, e
         assert any(event != "complete" for _, event in a.plans), a.plans  # decisions on U_pred were exercised
 
 
+def test_remote_episode_with_served_delays_equals_the_simulated_latency_step_for_step(run_dir, local, tmp_path):
+    """The server holds back each answer by a seeded delay; the client measures arrival in control steps on the
+    wall clock (knowing nothing of the delay) and must play what the simulated latency with the same draws plays."""
+    from pivla.control.asynchronous import AsyncConfig, SyncConfig
+    from pivla.control.latency import latency_rng, parse_latency
+    from pivla.envs import make_env
+
+    seed, delay = 5, "140:10"
+    rng = latency_rng(seed)
+    draws = [parse_latency(delay).draw_ms(rng) for _ in range(20)]
+    # every delay lies well inside (100, 200) ms, 2 steps at 10 Hz, so the loop's own few ms cannot move an arrival
+    assert all(110 < ms < 165 for ms in draws), draws
+    env = make_env("tabletop", "pick_place", 0, image_size=32)
+    runs = {}
+    with running_server(run_dir, tmp_path, delay_ms=delay, delay_seed=seed) as (port, _):
+        for execution in (AsyncConfig(threshold=2), SyncConfig()):
+            with RemotePolicy(f"ws://127.0.0.1:{port}", api_key=KEY) as remote:  # a connection: delays from the start
+                real = run_episode(env, remote, make_executor("fixed", horizon=3), seed=seed, max_steps=16,
+                                   execution=execution, latency="real")
+            simulated = run_episode(env, local, make_executor("fixed", horizon=3), seed=seed, max_steps=16,
+                                    execution=execution, latency=delay)
+            runs[execution.kind] = real, simulated
+    env.close()
+    for kind, (real, simulated) in runs.items():
+        assert real.delays == simulated.delays and set(real.delays) == {2}, (kind, real.delays)
+        assert np.array_equal(real.actions, simulated.actions), kind
+        assert real.trace == simulated.trace and real.plans == simulated.plans, kind
+    # sent with 2 actions left, each chunk arrives as the last one ends: only the first wait is idle
+    assert runs["async"][0].summary()["idle_steps"] == 2 and runs["sync"][0].summary()["idle_steps"] == 7
+
+
 class Relay:
     """A TCP relay to the server that the test can cut (a dropped network) or shut (the server unreachable)."""
 

@@ -47,6 +47,7 @@ from websockets.http11 import Request, Response
 
 import pivla
 from pivla.control.contract import PolicySpec
+from pivla.control.latency import Latency, latency_rng, parse_latency
 from pivla.model import encoder_runtime as er
 from pivla.model.backbone import ConvEncoder
 from pivla.model.onnx_encoder import ObservationEncoder
@@ -90,6 +91,12 @@ class ServeConfig:
     """Torch intra-op threads (0: torch's default)."""
     encoder_runtime: str = "auto"
     """The server's own target encoding (encode requests): auto, torch, onnx."""
+    delay_ms: str = "0"
+    """Answer each policy query (infer, infer_batch) no earlier than this long after it arrived: MEAN[:JITTER] ms,
+    lognormal, to try asynchronous execution against a slower model or network (docs/latency.md)."""
+    delay_seed: int = 0
+    """Seed of the delays; each connection draws its own sequence from it, one delay per query, in order (the
+    stream ``pivla eval --latency-ms`` draws an episode's latencies from when given the episode's seed)."""
 
 
 def is_loopback(host: str) -> bool:
@@ -211,18 +218,22 @@ class PolicyService:
         }
         self.metadata_frame = packb(self.metadata)
 
-    def answer(self, message: bytes | str) -> bytes | str:
-        """The reply frame to one request: binary msgpack, or a text frame saying what went wrong."""
+    def answer(self, message: bytes | str) -> tuple[bytes | str, bool]:
+        """The reply frame to one request (binary msgpack, or a text frame saying what went wrong), and whether
+        it answered a policy query (infer, infer_batch: what ``--delay-ms`` holds back)."""
         try:
             if isinstance(message, str):
                 raise P.RequestError("requests are binary msgpack frames, got a text frame")
-            return packb(self._dispatch(unpackb(message)))
+            request = unpackb(message)
+            reply = packb(self._dispatch(request))
+            method = request.get(P.METHOD_KEY, "infer") if isinstance(request, dict) else None
+            return reply, method in ("infer", "infer_batch")
         except (P.RequestError, DecodeError) as e:
             log.info("bad request: %s", e)
-            return f"bad request: {e}"
+            return f"bad request: {e}", False
         except Exception:  # noqa: BLE001 - the client gets the traceback and the server goes on
             log.exception("request failed")
-            return traceback.format_exc()
+            return traceback.format_exc(), False
 
     def _observations(self, request: dict, **checks: Any) -> list[dict]:
         items = request.get("observations")
@@ -282,8 +293,8 @@ class PolicyService:
 class _Server:
     """The asyncio side: handshake checks, one handler per connection, the inference worker."""
 
-    def __init__(self, service: PolicyService, cfg: ServeConfig, api_key: str | None):
-        self.service, self.cfg = service, cfg
+    def __init__(self, service: PolicyService, cfg: ServeConfig, api_key: str | None, delay: Latency):
+        self.service, self.cfg, self.delay = service, cfg, delay
         self.expected_auth = f"Api-Key {api_key}".encode() if api_key else None
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pivla-infer")
         self.server: Any = None
@@ -307,6 +318,7 @@ class _Server:
         peer = ws.remote_address
         log.info("client %s connected", peer)
         idle = self.cfg.idle_timeout_s or None
+        delays = latency_rng(self.cfg.delay_seed)  # per connection: its delays do not depend on other clients
         try:
             await ws.send(self.service.metadata_frame)
             while True:
@@ -316,7 +328,11 @@ class _Server:
                     log.info("client %s idle for %g s: closing", peer, idle)
                     await ws.close(CloseCode.GOING_AWAY, f"idle for {idle:g} s")
                     return
-                await ws.send(await loop.run_in_executor(self.worker, self.service.answer, message))
+                received = loop.time()
+                reply, query = await loop.run_in_executor(self.worker, self.service.answer, message)
+                if query and not self.delay.zero:  # held here, not on the worker: other clients are not delayed
+                    await asyncio.sleep(max(0.0, received + self.delay.draw_ms(delays) / 1e3 - loop.time()))
+                await ws.send(reply)
         except ConnectionClosedOK:
             log.info("client %s disconnected", peer)
         except ConnectionClosed as e:
@@ -334,6 +350,8 @@ class _Server:
                 self.server = server
                 log.info("serving %s on ws://%s:%d (protocol %s, target encoder: %s)", self.cfg.policy or "a policy",
                          self.cfg.host, self.cfg.port, P.PROTOCOL, self.service.metadata["target_encoder"]["runtime"])
+                if not self.delay.zero:
+                    log.info("policy answers held back %s ms (mean:jitter, seed %d)", self.delay, self.cfg.delay_seed)
                 await stop.wait()
                 log.info("shutting down")
         finally:
@@ -347,6 +365,10 @@ def serve(cfg: ServeConfig, policy: Any = None) -> None:
     robot, and anyone who reaches the port could query it."""
     if not cfg.idle_timeout_s >= 0:
         raise ValueError(f"ServeConfig.idle_timeout_s: {cfg.idle_timeout_s} (seconds >= 0; 0 keeps idle connections)")
+    try:
+        delay = parse_latency(cfg.delay_ms, allow_real=False)
+    except ValueError as e:
+        raise ValueError(f"--delay-ms {e}") from None
     api_key = read_api_key(cfg.api_key_file)
     if api_key is None and not is_loopback(cfg.host):
         raise ValueError(f"refusing to serve on {cfg.host!r} without an API key: anyone who can reach the port "
@@ -357,4 +379,4 @@ def serve(cfg: ServeConfig, policy: Any = None) -> None:
         if not cfg.policy:
             raise ValueError("ServeConfig.policy: give the run directory to serve")
         policy = load_policy(cfg.policy, device=cfg.device, threads=cfg.threads, encoder_runtime=cfg.encoder_runtime)
-    asyncio.run(_Server(PolicyService(policy, cfg), cfg, api_key).run())
+    asyncio.run(_Server(PolicyService(policy, cfg), cfg, api_key, delay).run())
