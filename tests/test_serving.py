@@ -592,6 +592,39 @@ def test_reconnects_after_a_dropped_connection_and_says_when_it_cannot(server, l
         RemotePolicy(f"127.0.0.1:{relay.port}")
 
 
+class CutAfter:
+    """The env, with the network to the server shut after ``step`` control steps."""
+
+    def __init__(self, env, relay: Relay, step: int):
+        self.env, self.relay, self.cut_at, self.unwrapped = env, relay, step, env.unwrapped
+
+    def reset(self, **kw):
+        self.t = 0
+        return self.env.reset(**kw)
+
+    def step(self, action):
+        self.t += 1
+        if self.t == self.cut_at:
+            self.relay.shut()
+        return self.env.step(action)
+
+
+def test_a_link_lost_during_async_execution_makes_the_arm_hold(server):
+    from pivla.control.asynchronous import AsyncConfig
+    from pivla.envs import make_env
+
+    relay = Relay(server[0])
+    env = make_env("tabletop", "pick_place", 0, image_size=32)
+    with RemotePolicy(f"127.0.0.1:{relay.port}", api_key=KEY, retries=1) as policy:
+        result = run_episode(CutAfter(env, relay, 6), policy, make_executor("fixed", horizon=3), seed=5, max_steps=18,
+                             execution=AsyncConfig(threshold=1), latency="real")
+    env.close()
+    moving = [t for t, a in enumerate(result.actions) if np.any(a[:6] != 0)]
+    # the chunk in execution when the link went runs out its horizon at the latest, then the arm holds
+    assert moving and moving[-1] < 6 + 3 and len(moving) >= 4, moving
+    assert result.summary()["failed_queries"] >= 1 and result.trace[-1].get("idle")
+
+
 def test_spec_of_a_run_without_stored_proprio_lengths(local):
     old = copy.copy(local)
     old.spec = dataclasses.replace(local.spec, proprio=(("ee_pos", -1), ("ee_ori", -1), ("gripper_states", -1)))

@@ -18,6 +18,11 @@ def evaluate(cfg: EvalConfig) -> int:
     print(f"{cfg.executor.kind}: success {res['success_rate']:.1%} [{lo:.1%}, {hi:.1%}] over {res['episodes']} "
           f"episodes; mean horizon {res['mean_executed_horizon']:.2f}, replans {res['replans']}, prunes "
           f"{res['prunes']}, pauses {res['pauses']}, control {res['control_hz']:.0f} Hz -> {cfg.out}/results.json")
+    if cfg.execution.kind != "sync" or cfg.latency_ms.strip() != "0":
+        qpm = res["queries_per_minute"]
+        print(f"  {cfg.execution.kind}, latency {cfg.latency_ms} ms: idle {res['idle_fraction']:.1%} of the steps, "
+              f"{'-' if qpm is None else f'{qpm:.0f}'} queries per minute, {res['stale_chunks']} stale chunks, "
+              f"{res['failed_queries']} queries lost")
     return 0
 
 
