@@ -242,15 +242,15 @@ def _aurd_options(env, policy):
 def test_zero_latency_reproduces_todays_twin_episode_step_for_step(twin_policy, twin, name):
     policy = twin_policy[1]
     options = _aurd_options(twin, policy) if name == "aurd" else {"horizon": 3} if name == "fixed" else {}
-    today = run_episode(twin, policy, make_executor(name, **options), seed=5, max_steps=16)
-    latency0 = run_episode(twin, policy, make_executor(name, **options), seed=5, max_steps=16,
+    today = run_episode(twin, policy, make_executor(name, **options), seed=5, max_steps=12)
+    latency0 = run_episode(twin, policy, make_executor(name, **options), seed=5, max_steps=12,
                            execution=SyncConfig(), latency="0")
     assert np.array_equal(today.actions, latency0.actions)
     assert today.trace == latency0.trace and today.plans == latency0.plans
     if name == "aurd":
         assert any(event != "complete" for _, event in today.plans), today.plans
     if name != "aurd":  # asynchronous AURD has no pauses and no check of a fresh chunk's first step
-        asynchronous = run_episode(twin, policy, make_executor(name, **options), seed=5, max_steps=16,
+        asynchronous = run_episode(twin, policy, make_executor(name, **options), seed=5, max_steps=12,
                                    execution=AsyncConfig(threshold=0), latency="0")
         assert np.array_equal(today.actions, asynchronous.actions)
 

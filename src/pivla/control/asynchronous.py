@@ -172,32 +172,32 @@ class AsyncExecutor(BaseExecutor):
         if self._settings is None:
             self._settings = self._setup(policy)
         t, self._row = self.t, {}
-        self._receive(policy, t)
+        self._receive(t)
         test = self._test(policy, obs, t)
         cut = test.get("event")
         if cut is not None:
             self._row.update(cut=cut, cut_u=test["u"], cut_v=test["v"])
             if self._ready is not None:  # a newer chunk is already here: it replaces the rest now
-                self._switch(policy, t, cut)
+                self._switch(t, cut)
             elif self._pending is not None:
                 self._pending.cut = self._pending.cut or cut
             else:
-                self._send(policy, obs, t, cut)
+                self._send(obs, t, cut)
         elif self._pending is None and self._ready is None and self._remaining() <= self.execution.threshold:
-            self._send(policy, obs, t, None)
+            self._send(obs, t, None)
         return self._execute(policy, obs, t)
 
     # -- queries and arrivals --------------------------------------------------------------------------
     def _remaining(self) -> int:
         return 0 if self._chunk is None else max(self._chunk.remaining, 0)
 
-    def _send(self, policy: ChunkPolicy, obs: dict, t: int, cut: str | None) -> None:
+    def _send(self, obs: dict, t: int, cut: str | None) -> None:
         self._pending = _Query(self.link.send(obs, t), t, cut)
         self.queries += 1
         self._row["sent"] = cut or "threshold"
-        self._receive(policy, t)  # at zero latency the chunk is here at once
+        self._receive(t)  # at zero latency the chunk is here at once
 
-    def _receive(self, policy: ChunkPolicy, t: int) -> None:
+    def _receive(self, t: int) -> None:
         for arrival in self.link.arrivals(t):
             query = self._pending
             if query is None or arrival.id != query.id:  # not the observation in flight: never executed
@@ -213,9 +213,9 @@ class AsyncExecutor(BaseExecutor):
             return
         query = self._ready[1]
         if query.cut is not None or self.cfg.kind != "aurd" or self._remaining() == 0:
-            self._switch(policy, t, query.cut)
+            self._switch(t, query.cut)
 
-    def _switch(self, policy: ChunkPolicy, t: int, cut: str | None) -> None:
+    def _switch(self, t: int, cut: str | None) -> None:
         """The waiting answer becomes the current chunk, at the action due now (or is dropped as stale)."""
         arrival, query = self._ready
         self._ready = None
