@@ -20,7 +20,8 @@ def evaluate(cfg: EvalConfig) -> int:
           f"{res['prunes']}, pauses {res['pauses']}, control {res['control_hz']:.0f} Hz -> {cfg.out}/results.json")
     if cfg.execution.kind != "sync" or cfg.latency_ms.strip() != "0":
         qpm = res["queries_per_minute"]
-        print(f"  {cfg.execution.kind}, latency {cfg.latency_ms} ms: idle {res['idle_fraction']:.1%} of the steps, "
+        latency = "measured" if cfg.latency_ms.strip() == "real" else f"{cfg.latency_ms} ms"
+        print(f"  {cfg.execution.kind}, latency {latency}: idle {res['idle_fraction']:.1%} of the steps, "
               f"{'-' if qpm is None else f'{qpm:.0f}'} queries per minute, {res['stale_chunks']} stale chunks, "
               f"{res['failed_queries']} queries lost")
     return 0
