@@ -58,6 +58,10 @@ def test_missing_key_is_named(tmp_path):
     with h5py.File(path, "a") as f:
         del f["data/demo_0/obs/agentview_rgb"]
     with pytest.raises(DatasetError, match=r"a.hdf5.*data/demo_0/obs/agentview_rgb"):
+        read_episodes(path, ("agentview_rgb", "ee_pos"))  # a camera is required where a reader asks for it
+    with h5py.File(path, "a") as f:
+        del f["data/demo_0/actions"]
+    with pytest.raises(DatasetError, match=r"a.hdf5.*data/demo_0/actions"):
         read_episodes(path)
 
 
@@ -75,7 +79,9 @@ def test_wrong_schema_is_named(tmp_path):
     with pytest.raises(DatasetError, match=r"w.hdf5: missing key 'data'"):
         read_episodes(tmp_path / "w.hdf5")
     with pytest.raises(DatasetError, match="shape"):
-        Episode(actions=np.zeros((5, 6)), obs={}, instruction="x")
+        Episode(actions=np.zeros(5), obs={}, instruction="x")
+    with pytest.raises(DatasetError, match="6-D actions, the action space is ee_delta"):
+        write_episodes(tmp_path / "six.hdf5", [Episode(actions=np.zeros((5, 6)), obs={}, instruction="x")])
 
 
 def test_failed_write_leaves_previous_file(tmp_path):

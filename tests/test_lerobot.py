@@ -15,6 +15,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from pivla.data.action_space import EE_DELTA
 from pivla.data.datasets import read_dataset
 from pivla.data.format import DatasetError, Episode, write_episodes
 from pivla.data.lerobot import (
@@ -219,7 +220,7 @@ def converted(tmp_path_factory):
     eps = read_dataset(src)
     eps[0].meta = {"seed": 3, "task": "x"}
     eps[1].source = "policy"
-    write_episodes(sorted(src.glob("*.hdf5"))[0], eps[:3], env_meta={"control_hz": FPS})
+    write_episodes(min(src.glob("*.hdf5")), eps[:3], env_meta={"control_hz": FPS})
     result = run_convert(ConvertConfig(str(src), str(root / "lr"), "lerobot",
                                        lerobot=LeRobotWriteConfig(episodes_per_file=4)))
     return src, root / "lr", result
@@ -239,7 +240,8 @@ def test_writer_output_follows_the_documented_layout(converted):
     assert feats["observation.state"]["shape"] == [8] and feats["observation.state"]["names"][:2] == ["ee_pos.0",
                                                                                                         "ee_pos.1"]
     assert feats["action"] == {"dtype": "float32", "shape": [7], "names": ["x", "y", "z", "roll", "pitch", "yaw",
-                                                                             "gripper"]}
+                                                                             "gripper"],
+                               "pivla/action_space": EE_DELTA.to_dict()}
     video = feats["observation.images.agentview_rgb"]
     assert video["dtype"] == "video" and video["shape"] == [32, 32, 3] and video["names"] == ["height", "width",
                                                                                             "channels"]

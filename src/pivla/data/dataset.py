@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pivla.data.format import DatasetError, Episode
+from pivla.data.action_space import EE_DELTA, ActionSpace
+from pivla.data.format import DatasetError, DatasetLayout, Episode
 from pivla.data.normalize import ActionStats, NormStats, StandardStats
 from pivla.data.text import WordTokenizer
 from pivla.data.transforms import NormalizeActions, input_pipeline, proprio_vector
@@ -33,7 +34,7 @@ def split_episodes(episodes: list[Episode], val_fraction: float, seed: int) -> t
     train, val = [], []
     for idx in by_task.values():
         idx = list(rng.permutation(idx))
-        n_val = int(round(len(idx) * val_fraction)) if len(idx) > 1 else 0
+        n_val = round(len(idx) * val_fraction) if len(idx) > 1 else 0
         if val_fraction > 0 and len(idx) > 1:
             n_val = max(n_val, 1)
         val += idx[:n_val]
@@ -41,13 +42,41 @@ def split_episodes(episodes: list[Episode], val_fraction: float, seed: int) -> t
     return sorted(train), sorted(val)
 
 
-def fit_norm_stats(episodes: list[Episode], cfg: ModelConfig) -> NormStats:
+def resolve_inputs(cfg: ModelConfig, layout: DatasetLayout, where: str) -> ModelConfig:
+    """``cfg`` with what it leaves empty taken from the dataset at ``where`` (its cameras, proprio keys, and the
+    lengths of proprio and actions), and what it names checked against the dataset, before any training."""
+    space = layout.action_space
+    if cfg.action_dim not in (0, space.dim):
+        raise DatasetError(f"{where}: the dataset's actions are {space.describe()}, the model config's action_dim "
+                           f"is {cfg.action_dim}")
+    cameras = tuple(cfg.cameras) or layout.cameras
+    keys = tuple(cfg.proprio_keys) or layout.proprio
+    if not cameras:
+        raise DatasetError(f"{where}: the dataset has no camera (no (T, H, W, 3) uint8 observation)")
+    missing = [c for c in cameras if c not in layout.cameras]
+    if missing:
+        raise DatasetError(f"{where}: no camera(s) {missing} (the dataset has {list(layout.cameras)})")
+    missing = [k for k in keys if k not in layout.vectors]
+    if missing or not keys:
+        raise DatasetError(f"{where}: no proprio key(s) {missing or 'chosen'} (the dataset's low-dim keys are "
+                           f"{layout.vectors}); name them with --model.proprio-keys")
+    proprio_dim = sum(layout.vectors[k] for k in keys)
+    if cfg.proprio_dim not in (0, proprio_dim):
+        raise DatasetError(f"{where}: proprio keys {list(keys)} give {proprio_dim} dims, the model config says "
+                           f"{cfg.proprio_dim}")
+    return dataclasses.replace(cfg, cameras=cameras, proprio_keys=keys, proprio_dim=proprio_dim,
+                               action_dim=space.dim)
+
+
+def fit_norm_stats(episodes: list[Episode], cfg: ModelConfig, space: ActionSpace = EE_DELTA) -> NormStats:
+    """The training set's statistics, with the action space they normalise."""
     actions = np.concatenate([ep.actions for ep in episodes])
     proprio = np.concatenate([proprio_vector(ep.obs, cfg.proprio_keys) for ep in episodes])
     if proprio.shape[-1] != cfg.proprio_dim:
         raise DatasetError(f"proprio keys {cfg.proprio_keys} give {proprio.shape[-1]} dims, config says {cfg.proprio_dim}")
     layout = [(k, int(np.asarray(episodes[0].obs[k]).shape[-1])) for k in cfg.proprio_keys]
-    return NormStats(action=ActionStats.fit(actions), proprio=StandardStats.fit(proprio), proprio_layout=layout)
+    return NormStats(action=ActionStats.fit(actions, space), proprio=StandardStats.fit(proprio), proprio_layout=layout,
+                     action_space=space)
 
 
 @dataclass

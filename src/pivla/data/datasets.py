@@ -6,14 +6,25 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
-from pivla.data.format import Episode, dataset_files, iter_episodes
-from pivla.data.lerobot import iter_lerobot
+from pivla.data.format import (
+    DatasetLayout,
+    Episode,
+    dataset_files,
+    hdf5_layout,
+    iter_episodes,
+)
+from pivla.data.lerobot import is_lerobot, iter_lerobot, lerobot_layout
+
+
+def dataset_layout(root: str | Path) -> DatasetLayout:
+    """The cameras, proprioception and action space a dataset offers, read without its pictures."""
+    return lerobot_layout(root) if is_lerobot(root) else hdf5_layout(root)
 
 
 def iter_dataset(root: str | Path, obs_keys: tuple[str, ...] | None = None) -> Iterator[Episode]:
     """The episodes below ``root`` one at a time: of every HDF5 file in file order then demo order, or of a
     LeRobot v3.0 dataset in episode order. ``obs_keys`` limits (and requires) the observation keys loaded."""
-    if (Path(root) / "meta").is_dir():
+    if is_lerobot(root):
         yield from iter_lerobot(root, obs_keys)
         return
     for path in dataset_files(root):

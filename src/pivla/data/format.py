@@ -2,9 +2,10 @@
 
 A dataset is a directory of ``.hdf5`` files. Each file holds::
 
-    data/                         attrs: problem_info (JSON with "language_instruction"), [pivla_version]
+    data/                         attrs: problem_info (JSON with "language_instruction"), [pivla_version],
+                                         [action_space] (JSON, ``ActionSpace.to_dict``)
     data/demo_<i>/                attrs: num_samples, [language_instruction], [success], [source]
-        actions        (T, 7) float   end-effector delta (xyz, Euler rpy, gripper)
+        actions        (T, D) float   as the action space says (absent: EE_DELTA, xyz, Euler rpy, gripper)
         rewards        (T,)   float
         dones          (T,)   uint8/bool
         obs/agentview_rgb    (T, H, W, 3) uint8
@@ -25,16 +26,32 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from pivla.data.action_space import EE_DELTA, ActionSpace
 from pivla.io import atomic_path
 
 IMAGE_KEYS = ("agentview_rgb", "eye_in_hand_rgb")
 LOW_DIM_KEYS = ("ee_pos", "ee_ori", "gripper_states", "joint_states")
-REQUIRED_DEMO_KEYS = ("actions", "rewards", "dones", "obs/agentview_rgb")
-ACTION_DIM = 7
+# what a policy reads of pivla's and LIBERO's files unless told otherwise (the agent view first)
+PROPRIO_KEYS = ("ee_pos", "ee_ori", "gripper_states")
+STATE_KEY = "state"  # the one key of a state vector without pivla's per-key names (LeRobot's observation.state)
+REQUIRED_DEMO_KEYS = ("actions", "rewards", "dones", "obs")  # cameras: whichever a reader asks for
+ACTION_SPACE_ATTR = "action_space"
 
 
 class DatasetError(ValueError):
     """A dataset file is unreadable, truncated, or does not follow the layout; the message names both."""
+
+
+@dataclass(frozen=True)
+class DatasetLayout:
+    """What a dataset offers a policy, read without its pictures: ``cameras`` (image keys, the agent view
+    first) and ``proprio`` (keys) a policy reads unless told otherwise, ``vectors`` (every low-dim key with
+    its length) and the ``action_space``."""
+
+    cameras: tuple[str, ...]
+    proprio: tuple[str, ...]
+    vectors: dict[str, int]
+    action_space: ActionSpace
 
 
 @dataclass
@@ -53,8 +70,8 @@ class Episode:
     def __post_init__(self) -> None:
         self.actions = np.asarray(self.actions, dtype=np.float32)
         T = len(self.actions)
-        if self.actions.ndim != 2 or self.actions.shape[1] != ACTION_DIM:
-            raise DatasetError(f"actions must have shape (T, {ACTION_DIM}), got {self.actions.shape}")
+        if self.actions.ndim != 2 or self.actions.shape[1] < 1:
+            raise DatasetError(f"actions must have shape (T, D), got {self.actions.shape}")
         if self.rewards is None:
             self.rewards = np.zeros(T, np.float32)
             if self.success and T:
@@ -79,38 +96,44 @@ class Episode:
         return len(self.actions)
 
 
-def write_episodes(path: str | Path, episodes: list[Episode], env_meta: dict | None = None) -> Path:
-    """Write episodes to one HDF5 file atomically (temp file + rename), so a crash never leaves half a file."""
+def write_episodes(path: str | Path, episodes: list[Episode], env_meta: dict | None = None,
+                   action_space: ActionSpace = EE_DELTA) -> Path:
+    """Write episodes to one HDF5 file atomically (temp file + rename), so a crash never leaves half a file.
+    ``action_space``: what the episodes' action rows mean (the twin's and LIBERO's by default)."""
     path = Path(path)
     if not episodes:
         raise DatasetError(f"{path}: refusing to write a file with no episodes")
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            data = f.create_group("data")
-            data.attrs["problem_info"] = json.dumps({"language_instruction": episodes[0].instruction})
-            data.attrs["env_args"] = json.dumps(env_meta or {})
-            data.attrs["pivla_version"] = 1
-            total = 0
-            for i, ep in enumerate(episodes):
-                g = data.create_group(f"demo_{i}")
-                g.attrs["num_samples"] = len(ep)
-                g.attrs["language_instruction"] = ep.instruction
-                g.attrs["success"] = bool(ep.success)
-                g.attrs["source"] = ep.source
-                if ep.meta:
-                    g.attrs["meta"] = json.dumps(ep.meta)
-                g.create_dataset("actions", data=ep.actions)
-                g.create_dataset("rewards", data=ep.rewards)
-                g.create_dataset("dones", data=ep.dones)
-                obs = g.create_group("obs")
-                for key, arr in ep.obs.items():
-                    arr = np.asarray(arr)
-                    if key in IMAGE_KEYS:
-                        obs.create_dataset(key, data=arr, chunks=(1, *arr.shape[1:]), compression="lzf")
-                    else:
-                        obs.create_dataset(key, data=arr)
-                total += len(ep)
-            data.attrs["total"] = total
+    for ep in episodes:
+        if ep.actions.shape[1] != action_space.dim:
+            raise DatasetError(f"{path}: episode {ep.instruction!r} has {ep.actions.shape[1]}-D actions, the "
+                               f"action space is {action_space.describe()}")
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        data = f.create_group("data")
+        data.attrs["problem_info"] = json.dumps({"language_instruction": episodes[0].instruction})
+        data.attrs["env_args"] = json.dumps(env_meta or {})
+        data.attrs["pivla_version"] = 1
+        data.attrs[ACTION_SPACE_ATTR] = json.dumps(action_space.to_dict())
+        total = 0
+        for i, ep in enumerate(episodes):
+            g = data.create_group(f"demo_{i}")
+            g.attrs["num_samples"] = len(ep)
+            g.attrs["language_instruction"] = ep.instruction
+            g.attrs["success"] = bool(ep.success)
+            g.attrs["source"] = ep.source
+            if ep.meta:
+                g.attrs["meta"] = json.dumps(ep.meta)
+            g.create_dataset("actions", data=ep.actions)
+            g.create_dataset("rewards", data=ep.rewards)
+            g.create_dataset("dones", data=ep.dones)
+            obs = g.create_group("obs")
+            for key, arr in ep.obs.items():
+                arr = np.asarray(arr)
+                if key in IMAGE_KEYS:
+                    obs.create_dataset(key, data=arr, chunks=(1, *arr.shape[1:]), compression="lzf")
+                else:
+                    obs.create_dataset(key, data=arr)
+            total += len(ep)
+        data.attrs["total"] = total
     return path
 
 
@@ -156,7 +179,8 @@ def _demos(path: Path, f: h5py.File, obs_keys: tuple[str, ...] | None) -> Iterat
     file_instruction = problem.get("language_instruction", "")
     if isinstance(file_instruction, list):  # some LIBERO files store it as a list of words
         file_instruction = " ".join(file_instruction)
-    demos = sorted((k for k in data.keys() if k.startswith("demo")), key=_demo_sort_key)
+    space = _action_space(path, data)
+    demos = sorted((k for k in data if k.startswith("demo")), key=_demo_sort_key)
     if not demos:
         raise DatasetError(f"{path}: group 'data' holds no demo_<i> groups")
     for name in demos:
@@ -188,12 +212,72 @@ def _demos(path: Path, f: h5py.File, obs_keys: tuple[str, ...] | None) -> Iterat
             raise DatasetError(f"{path}: data/{name}: {e}") if not str(e).startswith(str(path)) else e
         except _H5_DAMAGE as e:
             raise DatasetError(f"{path}: data/{name} is truncated or corrupt ({e})") from e
+        if ep.actions.shape[1] != space.dim:
+            raise DatasetError(f"{path}: data/{name}/actions has {ep.actions.shape[1]} dims, the file's action space "
+                               f"is {space.describe()}")
         img = obs.get("agentview_rgb")
         if img is not None and (img.ndim != 4 or img.shape[-1] != 3 or img.dtype != np.uint8):
             raise DatasetError(
                 f"{path}: data/{name}/obs/agentview_rgb must be (T,H,W,3) uint8, got {img.shape} {img.dtype}"
             )
         yield ep
+
+
+def _action_space(path: Path, data: h5py.Group) -> ActionSpace:
+    """The ``data.action_space`` attribute; files without one (LIBERO's, pivla's older ones) hold EE_DELTA."""
+    if ACTION_SPACE_ATTR not in data.attrs:
+        return EE_DELTA
+    try:
+        return ActionSpace.from_dict(json.loads(data.attrs[ACTION_SPACE_ATTR]))
+    except (TypeError, ValueError) as e:  # JSONDecodeError is a ValueError
+        raise DatasetError(f"{path}: attribute data.{ACTION_SPACE_ATTR} is not an action space ({e})") from None
+
+
+def read_action_space(path: str | Path) -> ActionSpace:
+    """What the actions of one file mean (EE_DELTA for a file that does not say)."""
+    try:
+        with h5py.File(path, "r") as f:
+            if "data" not in f:
+                raise DatasetError(f"{path}: missing key 'data'")
+            return _action_space(Path(path), f["data"])
+    except OSError as e:
+        raise DatasetError(f"{path}: not a readable HDF5 file ({e})") from e
+
+
+def hdf5_action_space(files: list[Path]) -> ActionSpace:
+    """The action space of a set of files, which must all declare the same one."""
+    spaces = {path: read_action_space(path) for path in files}
+    first = files[0]
+    for path, space in spaces.items():
+        if space != spaces[first]:
+            raise DatasetError(f"{path} has actions {space.describe()}, {first} has {spaces[first].describe()}: "
+                               "one dataset holds one action space")
+    return spaces[first]
+
+
+def hdf5_layout(root: str | Path) -> DatasetLayout:
+    """The layout of a directory of HDF5 files, from the first episode's keys and shapes (no pictures read):
+    LIBERO's cameras then any other (T, H, W, 3) uint8 key; pivla's proprio keys when all are there, else a
+    converted ``state``, else none."""
+    files = dataset_files(root)
+    space = hdf5_action_space(files)
+    try:
+        with h5py.File(files[0], "r") as f:
+            demos = sorted((k for k in f["data"] if k.startswith("demo")), key=_demo_sort_key)
+            if not demos:
+                raise DatasetError(f"{files[0]}: group 'data' holds no demo_<i> groups")
+            obs = f["data"][demos[0]]["obs"]
+            shapes = {k: (obs[k].shape, obs[k].dtype) for k in obs}
+    except _H5_DAMAGE as e:
+        raise DatasetError(f"{files[0]}: no readable data/demo_<i>/obs group ({e})") from e
+    images = [k for k, (shape, dtype) in shapes.items() if len(shape) == 4 and shape[-1] == 3 and dtype == np.uint8]
+    vectors = {k: int(shape[-1]) if len(shape) == 2 else 1 for k, (shape, _) in shapes.items() if len(shape) in (1, 2)}
+    if all(k in vectors for k in PROPRIO_KEYS):
+        proprio: tuple[str, ...] = PROPRIO_KEYS
+    else:
+        proprio = (STATE_KEY,) if STATE_KEY in vectors else ()
+    cameras = (*(k for k in IMAGE_KEYS if k in images), *(k for k in images if k not in IMAGE_KEYS))
+    return DatasetLayout(cameras=cameras, proprio=proprio, vectors=vectors, action_space=space)
 
 
 def read_env_meta(path: str | Path) -> dict:

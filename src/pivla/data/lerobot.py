@@ -16,7 +16,9 @@ Mapping to pivla's :class:`~pivla.data.format.Episode` (docs/dataset.md, "LeRobo
 with ``names`` ``["ee_pos.0", "ee_pos.1", ...]`` recording the split so reading restores the keys (other
 names give one key ``state``); other low-dim keys <-> ``observation.KEY``; ``action`` <-> ``actions``;
 ``next.reward``/``next.done`` <-> rewards/dones; task strings <-> instructions; the episode's success,
-source and meta live in extra ``pivla/*`` columns of ``meta/episodes`` (lerobot ignores them).
+source and meta live in extra ``pivla/*`` columns of ``meta/episodes`` (lerobot ignores them). The action
+space is the ``action`` feature's ``names`` and shape (``pivla.data.action_space.infer_action_space``), or
+the ``pivla/action_space`` entry pivla adds to that feature.
 """
 
 from __future__ import annotations
@@ -37,11 +39,15 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import tyro
 
+from pivla.data.action_space import EE_DELTA, ActionSpace, infer_action_space
 from pivla.data.format import (
-    ACTION_DIM,
+    PROPRIO_KEYS,
+    STATE_KEY,
     DatasetError,
+    DatasetLayout,
     Episode,
     dataset_files,
+    hdf5_action_space,
     read_env_meta,
     read_episodes,
     write_episodes,
@@ -72,11 +78,10 @@ INDEX_FEATURES = {
     "index": {"dtype": "int64", "shape": [1], "names": None},
     "task_index": {"dtype": "int64", "shape": [1], "names": None},
 }
-ACTION_NAMES = ["x", "y", "z", "roll", "pitch", "yaw", "gripper"]
 IMAGE_NAMES = ["height", "width", "channels"]
-PROPRIO_KEYS = ("ee_pos", "ee_ori", "gripper_states")  # pivla's default proprioception (ModelConfig)
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 PIVLA_SUCCESS, PIVLA_SOURCE, PIVLA_META = "pivla/success", "pivla/source", "pivla/meta"
+PIVLA_ACTION_SPACE = "pivla/action_space"  # an entry of the action feature in info.json (lerobot ignores it)
 CODECS = {"libx264": {}, "libsvtav1": {"preset": "12"}}  # per-codec extra options (lerobot's SVT preset)
 MB = 1024 * 1024
 
@@ -270,7 +275,7 @@ def _split_obs(ep: Episode) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray
 class _Writer:
     """Writes episodes one by one into ``root`` (a fresh folder) and the metadata on ``finish``."""
 
-    def __init__(self, root: Path, cfg: LeRobotWriteConfig):
+    def __init__(self, root: Path, cfg: LeRobotWriteConfig, action_space: ActionSpace):
         if cfg.fps is None or cfg.fps <= 0:
             raise DatasetError(f"fps must be a positive number of frames per second, got {cfg.fps}")
         if cfg.vcodec not in CODECS:
@@ -278,7 +283,7 @@ class _Writer:
         if (cfg.episodes_per_file is not None and cfg.episodes_per_file < 1) or cfg.chunks_size < 1:
             raise DatasetError(f"episodes_per_file ({cfg.episodes_per_file}) and chunks_size ({cfg.chunks_size}) "
                                "must be at least 1")
-        self.root, self.cfg = root, cfg
+        self.root, self.cfg, self.action_space = root, cfg, action_space
         self.features: dict[str, dict] | None = None
         self.state_keys: tuple[str, ...] = ()
         self.extra_keys: tuple[str, ...] = ()
@@ -315,7 +320,9 @@ class _Writer:
             dim = low[key].shape[1]
             features[OBS_PREFIX + key] = {"dtype": "float32", "shape": [dim],
                                           "names": [f"{key}.{i}" for i in range(dim)]}
-        features[ACTION] = {"dtype": "float32", "shape": [ACTION_DIM], "names": ACTION_NAMES}
+        space = self.action_space
+        features[ACTION] = {"dtype": "float32", "shape": [space.dim], "names": list(space.names),
+                            PIVLA_ACTION_SPACE: space.to_dict()}
         features[REWARD] = {"dtype": "float32", "shape": [1], "names": None}
         features[DONE] = {"dtype": "bool", "shape": [1], "names": None}
         self.features = {**features, **INDEX_FEATURES}
@@ -339,6 +346,9 @@ class _Writer:
     def add(self, ep: Episode) -> None:
         if len(ep) == 0:
             raise DatasetError(f"episode {ep.instruction!r} has no steps")
+        if ep.actions.shape[1] != self.action_space.dim:
+            raise DatasetError(f"episode {ep.instruction!r} has {ep.actions.shape[1]}-D actions, the action space "
+                               f"is {self.action_space.describe()}")
         images, low = _split_obs(ep)
         if self.features is None:
             self._layout(images, low)
@@ -458,13 +468,14 @@ def _pandas_index_metadata() -> dict:
 
 
 def write_lerobot(root: str | Path, episodes: Iterable[Episode], cfg: LeRobotWriteConfig,
-                  overwrite: bool = False) -> Path:
+                  overwrite: bool = False, action_space: ActionSpace = EE_DELTA) -> Path:
     """Write ``episodes`` (consumed one at a time, so a generator streams) as a LeRobot v3.0 dataset at
-    ``root``. The dataset is built in a temporary folder and renamed into place: never half a dataset."""
+    ``root``, their actions meaning ``action_space``. The dataset is built in a temporary folder and renamed
+    into place: never half a dataset."""
     root = Path(root)
     _check_destination(root, overwrite)
     with atomic_dir(root) as tmp:
-        writer = _Writer(tmp, cfg)
+        writer = _Writer(tmp, cfg, action_space)
         try:
             for ep in episodes:
                 writer.add(ep)
@@ -565,6 +576,45 @@ def _state_split(names, dim: int) -> list[tuple[str, int, int]] | None:
         else:
             return None
     return [tuple(p) for p in parts]
+
+
+def lerobot_action_space(root: str | Path, info: dict | None = None) -> ActionSpace:
+    """What a LeRobot dataset's actions mean: the action space pivla recorded in the ``action`` feature, else
+    one inferred from the feature's ``names`` (a list, or lerobot's older ``{"motors": [...]}``) and shape."""
+    info = read_info(root) if info is None else info
+    ft = info["features"].get(ACTION)
+    if ft is None:
+        raise DatasetError(f"{root}/{INFO_PATH}: missing feature {ACTION!r}")
+    shape = [int(s) for s in ft["shape"]]
+    if len(shape) != 1 or shape[0] < 1:
+        raise DatasetError(f"{root}: feature 'action' has shape {shape}; pivla needs one row of D numbers")
+    names = ft.get("names")
+    if isinstance(names, dict) and len(names) == 1:
+        names = next(iter(names.values()))
+    if names is None:
+        names = [f"{ACTION}.{i}" for i in range(shape[0])]
+    if not isinstance(names, list) or len(names) != shape[0]:
+        raise DatasetError(f"{root}: feature 'action' names {names} do not name its {shape[0]} dimensions")
+    try:
+        space = (ActionSpace.from_dict(ft[PIVLA_ACTION_SPACE]) if PIVLA_ACTION_SPACE in ft
+                 else infer_action_space(names))
+    except ValueError as e:
+        raise DatasetError(f"{root}: feature 'action': {e}") from None
+    if list(space.names) != [str(n) for n in names]:
+        raise DatasetError(f"{root}: feature 'action' {PIVLA_ACTION_SPACE} names {list(space.names)} differ from "
+                           f"its names {names}")
+    return space
+
+
+def lerobot_layout(root: str | Path) -> DatasetLayout:
+    """A LeRobot dataset's cameras (its image and video features, in info.json's order), proprioception
+    (``observation.state``, split as pivla wrote it) and action space, from meta/info.json alone."""
+    info = read_info(root)
+    plan = _plan(Path(root), info["features"], None)
+    vectors = {key: stop - start for key, (_, start, stop) in plan.vectors.items()}
+    state = [k for k, (feature, _, _) in plan.vectors.items() if feature == STATE]
+    return DatasetLayout(cameras=(*plan.videos, *plan.images), proprio=tuple(state), vectors=vectors,
+                         action_space=lerobot_action_space(root, info))
 
 
 def _obs_name(feature: str) -> str:
@@ -697,7 +747,7 @@ def _plan(root: Path, features: dict[str, dict], obs_keys: tuple[str, ...] | Non
             plan.images[_obs_name(name)] = name
         elif name == STATE:
             split = _state_split(ft.get("names"), shape[0])
-            for key, start, stop in split or [("state", 0, shape[0])]:
+            for key, start, stop in split or [(STATE_KEY, 0, shape[0])]:
                 plan.vectors[key] = (name, start, stop)
         elif name.startswith(OBS_PREFIX) and ft["dtype"] != "string" and len(shape) == 1:
             plan.vectors[_obs_name(name)] = (name, 0, shape[0])
@@ -766,9 +816,7 @@ def iter_lerobot(root: str | Path, obs_keys: tuple[str, ...] | None = None) -> I
     for name in (ACTION, "episode_index", "frame_index", "task_index"):
         if name not in features:
             raise DatasetError(f"{root}/{INFO_PATH}: missing feature {name!r}")
-    if [int(s) for s in features[ACTION]["shape"]] != [ACTION_DIM]:
-        raise DatasetError(f"{root}: feature 'action' has shape {features[ACTION]['shape']}; pivla episodes need "
-                           f"[{ACTION_DIM}] (xyz, rpy, gripper)")
+    lerobot_action_space(root, info)
     tasks = _read_tasks(root)
     rows = _read_episode_rows(root)
     plan = _plan(root, features, obs_keys)
@@ -832,11 +880,16 @@ def read_lerobot(root: str | Path, obs_keys: tuple[str, ...] | None = None) -> l
 # ------------------------------------------------------------------------------------------ conversion
 
 
+def is_lerobot(path: str | Path) -> bool:
+    """A folder with ``meta/`` is a LeRobot dataset (LeRobot keeps its metadata there)."""
+    return (Path(path) / "meta").is_dir()
+
+
 def detect_format(path: str | Path) -> Literal["hdf5", "lerobot"]:
     """``lerobot`` for a folder with ``meta/`` (LeRobot keeps its metadata there), ``hdf5`` for a ``.hdf5``
     file or a folder of them."""
     path = Path(path)
-    if (path / "meta").is_dir():
+    if is_lerobot(path):
         return "lerobot"
     try:
         dataset_files(path)
@@ -853,7 +906,7 @@ def _hdf5_fps(files: list[Path]) -> int | None:
         env = read_env_meta(path)
         rate = env.get("control_hz") or (env.get("env_kwargs") or {}).get("control_freq")
         if rate:
-            rates.add(int(round(float(rate))))
+            rates.add(round(float(rate)))
     if len(rates) > 1:
         raise DatasetError(f"the files record different control rates {sorted(rates)} Hz: give fps")
     return rates.pop() if rates else None
@@ -873,7 +926,7 @@ def _slug(text: str) -> str:
 
 
 def write_hdf5(root: str | Path, episodes: Iterable[Episode], env_meta: dict, episodes_per_file: int = 50,
-               overwrite: bool = False) -> Path:
+               overwrite: bool = False, action_space: ActionSpace = EE_DELTA) -> Path:
     """Write episodes as LIBERO-layout files, one per run of consecutive episodes of one task (at most
     ``episodes_per_file``), named ``<n>_<task>_demo.hdf5`` so their sorted order is the episode order."""
     root = Path(root)
@@ -885,12 +938,12 @@ def write_hdf5(root: str | Path, episodes: Iterable[Episode], env_meta: dict, ep
         n = 0
         for ep in episodes:
             if run and (ep.instruction != run[0].instruction or len(run) >= episodes_per_file):
-                write_episodes(tmp / f"{n:05d}_{_slug(run[0].instruction)}_demo.hdf5", run, env_meta)
+                write_episodes(tmp / f"{n:05d}_{_slug(run[0].instruction)}_demo.hdf5", run, env_meta, action_space)
                 run, n = [], n + 1
             run.append(ep)
         if not run:
             raise DatasetError("refusing to write a dataset with no episodes")
-        write_episodes(tmp / f"{n:05d}_{_slug(run[0].instruction)}_demo.hdf5", run, env_meta)
+        write_episodes(tmp / f"{n:05d}_{_slug(run[0].instruction)}_demo.hdf5", run, env_meta, action_space)
     return root
 
 
@@ -947,12 +1000,13 @@ def run_convert(cfg: ConvertConfig) -> ConvertResult:
         if fps is None:
             raise DatasetError(f"{src}: the files record no control rate (env_args control_hz): give fps")
         write_lerobot(dst, counted(ep for path in files for ep in read_episodes(path)),
-                      replace(cfg.lerobot, fps=fps), overwrite=cfg.overwrite)
+                      replace(cfg.lerobot, fps=fps), overwrite=cfg.overwrite, action_space=hdf5_action_space(files))
     else:
         info = read_info(src)
         fps = int(info["fps"])
         env_meta = {"control_hz": fps, "robot_type": info.get("robot_type"), "converted_from": "LeRobot v3.0"}
-        write_hdf5(dst, counted(iter_lerobot(src)), env_meta, cfg.hdf5_episodes_per_file, overwrite=cfg.overwrite)
+        write_hdf5(dst, counted(iter_lerobot(src)), env_meta, cfg.hdf5_episodes_per_file, overwrite=cfg.overwrite,
+                   action_space=lerobot_action_space(src, info))
     return ConvertResult(dst=dst, source_format=source, episodes=count["episodes"], frames=count["frames"], fps=fps)
 
 

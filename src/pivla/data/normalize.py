@@ -1,8 +1,8 @@
 """Normalization kept out of the model: pure functions plus the statistics that travel with a checkpoint.
 
 Actions are mapped per dimension to [-1, 1] with the 1st/99th percentiles of the training set (OpenVLA's
-BOUNDS_Q99); the gripper dimension is binary (-1 open, +1 close) and only thresholded. Proprioception is
-standardised. Statistics are plain JSON so a checkpoint never needs pickle.
+BOUNDS_Q99); a gripper that is an open/close command (the twin's and LIBERO's, -1 open, +1 close) is only
+thresholded. Proprioception is standardised. Statistics are plain JSON so a checkpoint never needs pickle.
 """
 
 from __future__ import annotations
@@ -11,21 +11,22 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-GRIPPER_DIM = 6
+from pivla.data.action_space import EE_DELTA, ActionSpace
 
 
 @dataclass
 class ActionStats:
     q01: list[float]
     q99: list[float]
-    gripper_dim: int = GRIPPER_DIM
+    # the dimension thresholded to -1 / +1 (a binary gripper), None for none; files always record it
+    gripper_dim: int | None = EE_DELTA.binary_gripper
 
     @classmethod
-    def fit(cls, actions: np.ndarray) -> "ActionStats":
+    def fit(cls, actions: np.ndarray, space: ActionSpace = EE_DELTA) -> ActionStats:
         actions = np.asarray(actions, dtype=np.float64)
         q01 = np.quantile(actions, 0.01, axis=0)
         q99 = np.quantile(actions, 0.99, axis=0)
-        return cls(q01=q01.tolist(), q99=q99.tolist())
+        return cls(q01=q01.tolist(), q99=q99.tolist(), gripper_dim=space.binary_gripper)
 
     def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = np.asarray(self.q01, np.float32), np.asarray(self.q99, np.float32)
@@ -35,15 +36,17 @@ class ActionStats:
         """Physical actions -> [-1, 1]; values beyond the percentiles are clipped."""
         lo, hi = self._bounds()
         out = np.clip(2.0 * (np.asarray(actions, np.float32) - lo) / (hi - lo) - 1.0, -1.0, 1.0)
-        out[..., self.gripper_dim] = np.where(np.asarray(actions)[..., self.gripper_dim] > 0, 1.0, -1.0)
+        if self.gripper_dim is not None:
+            out[..., self.gripper_dim] = np.where(np.asarray(actions)[..., self.gripper_dim] > 0, 1.0, -1.0)
         return out.astype(np.float32)
 
     def unnormalize(self, actions: np.ndarray) -> np.ndarray:
-        """[-1, 1] -> physical actions; the gripper is thresholded to exactly -1 or +1."""
+        """[-1, 1] -> physical actions; a binary gripper is thresholded to exactly -1 or +1."""
         lo, hi = self._bounds()
         a = np.asarray(actions, np.float32)
         out = (np.clip(a, -1.0, 1.0) + 1.0) / 2.0 * (hi - lo) + lo
-        out[..., self.gripper_dim] = np.where(a[..., self.gripper_dim] > 0, 1.0, -1.0)
+        if self.gripper_dim is not None:
+            out[..., self.gripper_dim] = np.where(a[..., self.gripper_dim] > 0, 1.0, -1.0)
         return out.astype(np.float32)
 
 
@@ -55,7 +58,7 @@ class StandardStats:
     std: list[float]
 
     @classmethod
-    def fit(cls, x: np.ndarray, min_std: float = 1e-3) -> "StandardStats":
+    def fit(cls, x: np.ndarray, min_std: float = 1e-3) -> StandardStats:
         x = np.asarray(x, dtype=np.float64)
         return cls(mean=x.mean(0).tolist(), std=np.maximum(x.std(0), min_std).tolist())
 
@@ -69,12 +72,22 @@ class NormStats:
     proprio: StandardStats
     # each proprio key with its length, in order (what a client must send); None in runs written before it
     proprio_layout: list[tuple[str, int]] | None = None
+    # what the actions mean (the training data's); None in runs written before it, which are EE_DELTA
+    action_space: ActionSpace | None = None
+
+    @property
+    def space(self) -> ActionSpace:
+        """The run's action space."""
+        return self.action_space or EE_DELTA
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return {"action": asdict(self.action), "proprio": asdict(self.proprio),
+                "proprio_layout": None if self.proprio_layout is None else [list(x) for x in self.proprio_layout],
+                "action_space": None if self.action_space is None else self.action_space.to_dict()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "NormStats":
-        layout = d.get("proprio_layout")
+    def from_dict(cls, d: dict) -> NormStats:
+        layout, space = d.get("proprio_layout"), d.get("action_space")
         return cls(action=ActionStats(**d["action"]), proprio=StandardStats(**d["proprio"]),
-                   proprio_layout=[(str(k), int(n)) for k, n in layout] if layout is not None else None)
+                   proprio_layout=[(str(k), int(n)) for k, n in layout] if layout is not None else None,
+                   action_space=ActionSpace.from_dict(space) if space is not None else None)
