@@ -72,7 +72,7 @@ def test_each_term_reaches_only_its_heads(term, expected):
     torch.manual_seed(0)
     m = CMSModel(CFG, vocab_size=12)
     b = fake_batch()
-    only = dict(use_rl=False, use_sp=False, use_recon=False)
+    only = {"use_rl": False, "use_sp": False, "use_recon": False}
     if term == "il":
         loss, _ = unified_loss(m, m(b), b, LossConfig(**only))
     elif term == "actor":
@@ -84,7 +84,7 @@ def test_each_term_reaches_only_its_heads(term, expected):
     elif term == "sp":
         out = m(b)
         cfg = LossConfig(use_rl=False, use_recon=False)
-        full, logs = unified_loss(m, out, b, cfg)
+        full, _ = unified_loss(m, out, b, cfg)
         il, _ = unified_loss(m, out, b, LossConfig(**only))
         loss = full - il
     else:
@@ -249,13 +249,13 @@ def test_demo_policy_encodes_its_agent_view_downsampled(tmp_path):
     """The recipe (full demo and quick) trains with the target encoder reading the agent view downsampled 4x
     (its cheap U_pred) at 80 px; a resolution the downsampling does not divide is refused."""
     from pivla.evaluation.demo import DemoConfig, quick, train_config
-    from pivla.training.config import TrainConfig
+    from pivla.training.config import TrainConfig, with_twin_inputs
 
     assert TrainConfig().model.image_size == 80 and TrainConfig().model.target_encoder.downsample == 4
     for demo in (DemoConfig(), quick()):
         cfg = train_config(demo, tmp_path / "data", tmp_path / "run").model
         assert cfg.image_size == demo.image_size and cfg.target_encoder.downsample == 4
-        target = CMSModel(cfg, vocab_size=12).target
+        target = CMSModel(with_twin_inputs(cfg), vocab_size=12).target
         assert target.downsample == 4 and cfg.target_encoder.stages == 0
         assert len(target.encoder.res) == len(cfg.backbone.vision_channels)
     with pytest.raises(ValueError, match="image size 90 px is not a multiple"):

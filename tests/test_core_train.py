@@ -8,7 +8,7 @@ import torch
 
 from pivla import load_policy
 from pivla.training import checkpoint as ck
-from pivla.training.config import TrainConfig
+from pivla.training.config import TrainConfig, with_twin_inputs
 from pivla.training.trainer import Trainer, images_on_disk, train
 from tests.conftest import tiny_train_config
 
@@ -120,7 +120,8 @@ def test_pictures_held_on_disk_train_the_same_model(tmp_path, synthetic_data):
 
 
 def test_auto_picture_store_goes_to_disk_past_a_third_of_the_ram():
-    cfg = TrainConfig()  # two cameras at 80 px: 38,400 bytes a frame
+    cfg = TrainConfig()
+    cfg = dataclasses.replace(cfg, model=with_twin_inputs(cfg.model))  # two cameras at 80 px: 38,400 bytes a frame
     third = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 3
     assert not images_on_disk(cfg, int(third // 38_400))
     assert images_on_disk(cfg, int(third // 38_400) + 1)

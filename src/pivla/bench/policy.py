@@ -17,7 +17,7 @@ from pivla.data.synthetic import make_synthetic_dataset
 from pivla.data.text import WordTokenizer
 from pivla.model.cms import CMSModel
 from pivla.policy import Policy, load_policy
-from pivla.training.config import PRESETS, LossConfig, TrainConfig
+from pivla.training.config import PRESETS, LossConfig, TrainConfig, with_twin_inputs
 from pivla.training.trainer import Trainer
 
 INSTRUCTION = "pick up the red block and move it to the left of the table"
@@ -27,7 +27,7 @@ def default_policy(run: str | None = None, encoder_runtime: str = "auto") -> Pol
     """A trained policy, or the recipe's model with random weights."""
     if run:
         return load_policy(run, device="cpu", encoder_runtime=encoder_runtime)
-    cfg = TrainConfig().model
+    cfg = with_twin_inputs(TrainConfig().model)
     text = WordTokenizer.build([INSTRUCTION], cfg.max_text_len)
     layout = [("ee_pos", 3), ("ee_ori", 3), ("gripper_states", 2)]
     stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7), StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim),
@@ -125,5 +125,5 @@ def run_train_bench(cfg: TrainBenchConfig) -> dict:
     med = float(np.median(times[3:]))
     return {"train_step_s_median": round(med, 4), "samples_per_s": round(cfg.batch_size / med, 1),
             "batch_size": cfg.batch_size, "threads": cfg.threads, "grid_tokens": cfg.grid_tokens,
-            "preset": cfg.preset, "image_size": tc.model.image_size, "cameras": len(tc.model.cameras),
+            "preset": cfg.preset, "image_size": tc.model.image_size, "cameras": len(trainer.cfg.model.cameras),
             "mixed_precision": cfg.mixed_precision, "loss": dataclasses.asdict(cfg.loss)}

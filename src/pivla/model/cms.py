@@ -223,6 +223,10 @@ class CMSModel(nn.Module):
 
     def __init__(self, cfg: ModelConfig, vocab_size: int):
         super().__init__()
+        unset = [name for name in ("cameras", "proprio_keys", "proprio_dim", "action_dim") if not getattr(cfg, name)]
+        if unset:
+            raise ValueError(f"model config leaves {unset} to the dataset: fill them from one first "
+                             "(pivla.data.dataset.resolve_inputs)")
         self.cfg = cfg
         self.backbone = build_backbone(cfg, vocab_size)
         d = self.backbone.d_model

@@ -87,7 +87,9 @@ class TargetEncoderConfig:
 
 @dataclass
 class ModelConfig:
-    """The CMS model: chunk and horizon, inputs, heads (paper Eqs. 3-7)."""
+    """The CMS model: chunk and horizon, inputs, heads (paper Eqs. 3-7). The defaults of the inputs and of D
+    are the twin's layout; a training config leaves them empty, and training fills them from its dataset
+    (``pivla.data.dataset.resolve_inputs``), so a run's config.json holds the values the model was built with."""
 
     chunk: int = 8
     """K, actions per chunk."""
@@ -96,15 +98,15 @@ class ModelConfig:
     n_bins: int = 256
     """B, discrete bins per action dimension (Eq. 4)."""
     action_dim: int = 7
-    """D, action dimensions (end-effector deltas and the gripper)."""
+    """D, action dimensions: the training dataset's action space's (0 in a training config: taken from it)."""
     cameras: tuple[str, ...] = ("agentview_rgb", "eye_in_hand_rgb")
-    """Image keys of an observation, the agent view first."""
+    """Image keys of an observation, the agent view first (empty in a training config: the dataset's)."""
     image_size: int = 96
     """Side in pixels of the square pictures the model reads (other sizes are resized)."""
     proprio_keys: tuple[str, ...] = ("ee_pos", "ee_ori", "gripper_states")
-    """Proprioceptive keys, concatenated in this order."""
+    """Proprioceptive keys, concatenated in this order (empty in a training config: the dataset's)."""
     proprio_dim: int = 8
-    """Length of the concatenated proprio vector."""
+    """Length of the concatenated proprio vector (0 in a training config: from the dataset)."""
     max_text_len: int = 16
     """Instruction tokens kept."""
     state_hidden: int = 256

@@ -12,6 +12,9 @@ from typing import Literal
 
 from pivla.model.config import BackboneConfig, ModelConfig, TargetEncoderConfig
 
+# the model inputs a training run takes from its dataset unless they are named (pivla.data.dataset.resolve_inputs)
+FROM_DATASET = {"cameras": (), "proprio_keys": (), "proprio_dim": 0, "action_dim": 0}
+
 
 @dataclass
 class LossConfig:
@@ -113,8 +116,8 @@ class TrainConfig:
     """Where the training pictures are held: in memory, or in a file in the run directory that the OS pages in
     (for datasets larger than the RAM); auto chooses disk when they would fill more than a third of the RAM."""
     model: ModelConfig = field(default_factory=lambda: ModelConfig(
-        image_size=80, target_encoder=TargetEncoderConfig(downsample=4)))
-    """The CMS model."""
+        image_size=80, target_encoder=TargetEncoderConfig(downsample=4), **FROM_DATASET))
+    """The CMS model; its cameras, proprio keys and dimensions are the dataset's unless named."""
     loss: LossConfig = field(default_factory=LossConfig)
     """The unified objective."""
 
@@ -135,10 +138,17 @@ def check_target_divides(model: ModelConfig) -> None:
                          f"({factor}x)")
 
 
+def with_twin_inputs(model: ModelConfig) -> ModelConfig:
+    """``model`` on the twin's cameras, proprioception and actions (``ModelConfig``'s defaults): a model built
+    without a dataset to take them from."""
+    twin = ModelConfig()
+    return dataclasses.replace(model, **{name: getattr(twin, name) for name in FROM_DATASET})
+
+
 def libero_preset() -> TrainConfig:
     """LIBERO: both cameras at 128 px, proprio without the wrapping roll angle (end effector + gripper)."""
     base = TrainConfig()
-    model = dataclasses.replace(base.model, image_size=128, proprio_keys=("ee_pos", "gripper_states"), proprio_dim=5)
+    model = dataclasses.replace(base.model, image_size=128, proprio_keys=("ee_pos", "gripper_states"))
     return dataclasses.replace(base, model=model)
 
 

@@ -10,6 +10,7 @@ under FSDP loads and resumes like any other.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -42,10 +43,11 @@ from pivla.data.dataset import (
     fit_norm_stats,
     image_store,
     prepare_episodes,
+    resolve_inputs,
     split_episodes,
 )
-from pivla.data.datasets import iter_dataset
-from pivla.data.format import DatasetError, Episode
+from pivla.data.datasets import dataset_layout, iter_dataset
+from pivla.data.format import DatasetError, DatasetLayout, Episode
 from pivla.data.normalize import NormStats
 from pivla.data.text import build_text_tokenizer, load_text_tokenizer
 from pivla.data.transforms import batch_to_tensors
@@ -131,6 +133,19 @@ def training_episodes(cfg: TrainConfig, obs_keys: tuple[str, ...] | None = None)
         yield from iter_dataset(root, obs_keys)
 
 
+def training_layout(cfg: TrainConfig, stats: NormStats | None = None) -> DatasetLayout:
+    """The layout of ``--data``, after refusing any ``--extra-data`` (or, with a resumed run's ``stats``, any
+    dataset) whose actions are not the policy's, by name, before anything is loaded."""
+    if not cfg.data:
+        raise DatasetError("no dataset given (--data DIR)")
+    layout = dataset_layout(cfg.data)
+    if stats is not None:
+        stats.space.check_same(layout.action_space, f"--data {cfg.data}")
+    for root in cfg.extra_data:
+        layout.action_space.check_same(dataset_layout(root).action_space, f"--extra-data {root}")
+    return layout
+
+
 def images_on_disk(cfg: TrainConfig, frames: int, local_processes: int = 1) -> bool:
     """``cfg.image_store``, with auto choosing disk when the pictures would fill more than a third of the RAM
     (each of the machine's ``local_processes`` training processes holds its own copy)."""
@@ -144,8 +159,12 @@ class Trainer:
     """Holds the state of one run; ``run()`` trains to ``cfg.steps`` and returns the run directory."""
 
     def __init__(self, cfg: TrainConfig, resume: bool = False):
-        self.cfg = cfg
         self.run_dir = Path(cfg.out)
+        resumed = resume and (self.run_dir / ck.STATS_FILE).exists()
+        stats = NormStats.from_dict(ck.read_json(self.run_dir / ck.STATS_FILE)) if resumed else None
+        # the model's cameras, proprioception and action dimension: the dataset's unless the config names them
+        layout = training_layout(cfg, stats)
+        cfg = self.cfg = dataclasses.replace(cfg, model=resolve_inputs(cfg.model, layout, cfg.data))
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)
         self.acc = _accelerator(cfg)
@@ -156,11 +175,11 @@ class Trainer:
         episodes = list(training_episodes(cfg, tuple(cfg.model.proprio_keys)))
         train_idx, val_idx = split_episodes(episodes, cfg.val_fraction, cfg.seed)
         train_eps = [episodes[i] for i in train_idx]
-        if resume and (self.run_dir / ck.STATS_FILE).exists():
-            self.stats = NormStats.from_dict(ck.read_json(self.run_dir / ck.STATS_FILE))
+        if stats is not None:
+            self.stats = stats
             self.text = load_text_tokenizer(ck.read_json(self.run_dir / ck.TOKENIZER_FILE))
         else:
-            self.stats = fit_norm_stats(train_eps, cfg.model)
+            self.stats = fit_norm_stats(train_eps, cfg.model, layout.action_space)
             self.text = build_text_tokenizer(cfg.model.backbone.name, [ep.instruction for ep in train_eps],
                                              cfg.model.max_text_len, cfg.model.backbone.path)
         lengths = [len(ep.actions) for ep in episodes]
