@@ -54,12 +54,14 @@ def head_outputs(out: CMSOutput, bin_centers: torch.Tensor) -> dict[str, np.ndar
     }
 
 
-def select_heads(heads: Mapping[str, np.ndarray], action_head: str, gripper_head: str, both_heads: bool) -> dict[str, np.ndarray]:
-    """The executed chunk ``actions_normalized``: the arm from ``action_head``, the gripper from ``gripper_head``;
-    and ``u_act`` (Eq. 13), zero for a policy trained with one head."""
+def select_heads(heads: Mapping[str, np.ndarray], action_head: str, gripper_head: str, both_heads: bool,
+                 gripper: int | None) -> dict[str, np.ndarray]:
+    """The executed chunk ``actions_normalized``: the arm from ``action_head``, the gripper (dimension
+    ``gripper``, None for none) from ``gripper_head``; and ``u_act`` (Eq. 13), zero for a one-head policy."""
     cont, deq = heads["continuous_normalized"], heads["dequantized"]
     primary = (cont if action_head == "continuous" else deq).copy()
-    primary[..., -1] = (cont if gripper_head == "continuous" else deq)[..., -1]
+    if gripper is not None:
+        primary[..., gripper] = (cont if gripper_head == "continuous" else deq)[..., gripper]
     u_act = action_uncertainty(cont, deq) if both_heads else np.zeros(cont.shape[:2])
     return {**heads, "actions_normalized": primary, "u_act": u_act}
 
@@ -87,10 +89,13 @@ class Policy:
         self.run_dir = run_dir
         self.calibration = calibration
         self.device = device or next(model.parameters()).device
+        if stats.space.dim != self.cfg.action_dim:
+            raise ValueError(f"the statistics' actions are {stats.space.describe()}, the model's D is "
+                             f"{self.cfg.action_dim}")
         self.spec = PolicySpec(
             cameras=tuple(self.cfg.cameras), image_size=self.cfg.image_size,
             proprio=_proprio_lengths(stats, self.cfg.proprio_keys),
-            chunk=self.cfg.chunk, horizon=self.cfg.horizon, action_dim=self.cfg.action_dim,
+            chunk=self.cfg.chunk, horizon=self.cfg.horizon, action_space=stats.space,
             latent_dim=model.latent_dim, target_cameras=model.target.cameras, target_proprio=model.target.proprio > 0)
         lengths = [n for _, n in self.spec.proprio]
         self._inputs = input_pipeline(self.cfg, stats.proprio, text, lengths)
@@ -100,7 +105,7 @@ class Policy:
         # U_act (Eq. 13) is the disagreement of two trained heads; a one-head ablation has none, and comparing
         # with the untrained head would feed AURD noise
         self.both_heads = both_heads
-        # The gripper (the last action dimension, open -1 / closed +1) is a binary decision taken at a few
+        # The twin's gripper (open -1 / closed +1) is a binary decision taken at a few
         # moments of an episode. The cross-entropy of the discrete head learns those moments; the SmoothL1 of
         # the continuous head can miss them (docs/experiments.md#gripper-from-the-discrete-head). So with two
         # trained heads the gripper follows Eq. 12 and the arm the continuous head.
@@ -162,8 +167,8 @@ class Policy:
         """Batched ``infer``: every output gains a leading batch dimension."""
         inputs = self.model_inputs(obs_list)
         heads = head_outputs(self.model(inputs), self.model.bin_centers)
-        out = unnormalize_actions(select_heads(heads, self.action_head, self.gripper_head, self.both_heads),
-                                  self.stats.action)
+        out = unnormalize_actions(select_heads(heads, self.action_head, self.gripper_head, self.both_heads,
+                                               self.spec.action_space.gripper), self.stats.action)
         if not np.isfinite(out["actions"]).all():  # a finite input so far out of range that the network overflows
             raise ValueError("the policy computed non-finite actions from this observation (largest normalized "
                              f"proprio value {float(inputs['proprio'].abs().max()):.3g}; the training data's lie "
@@ -171,10 +176,10 @@ class Policy:
         return out
 
     def infer(self, obs: Mapping[str, Any]) -> dict[str, np.ndarray]:
-        """One observation -> actions (K,7) un-normalised from the primary head (the gripper from
-        ``gripper_head``), actions_normalized (K,7), continuous_normalized and dequantized (K,7) (both heads,
-        normalized; Eq. 12 for the latter), u_act (K,) (Eq. 13; zero for a policy trained with one head),
-        discrete_probs (K,7,256), latents (K,d_z) predicted next-observation latents, values (H,), value_now ()."""
+        """One observation -> actions (K,D) un-normalised from the primary head (the gripper from
+        ``gripper_head``), in the units of ``spec.action_space``; actions_normalized (K,D), continuous_normalized
+        and dequantized (K,D) (both heads, normalized; Eq. 12 for the latter), u_act (K,) (Eq. 13; zero for a
+        policy trained with one head), discrete_probs (K,D,256), latents (K,d_z) predicted next-observation latents, values (H,), value_now ()."""
         return {k: v[0] for k, v in self.infer_batch([obs]).items()}
 
     def _target_images(self, obs_list: Sequence[Mapping[str, Any]]) -> np.ndarray:

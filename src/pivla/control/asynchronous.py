@@ -283,7 +283,7 @@ class AsyncExecutor(BaseExecutor):
         c = self._chunk
         row = self._row
         if c is None or c.remaining <= 0:
-            return self._emit(self.hold_action(), idle=True, **row)
+            return self._emit(self.hold_action(policy.spec.action_space), idle=True, **row)
         j = c.step
         action = c.plan.actions[j].copy()
         if c.k < len(self._blend):
@@ -353,7 +353,7 @@ class AsyncEnsembleExecutor(BaseExecutor):
         self._history = [h for h in self._history if t - h[0] < len(h[2].actions)]
         row = self._row
         if not self._history:
-            return self._emit(self.hold_action(), idle=True, **row)
+            return self._emit(self.hold_action(policy.spec.action_space), idle=True, **row)
         preds = np.stack([plan.normalized[t - sent] for sent, _, plan in self._history])
         action = policy.to_actions(temporal_ensemble(preds, self.cfg.m).astype(np.float32))
         sent, qid, newest = self._history[-1]
@@ -417,7 +417,7 @@ class LinkActor:
         self.linked = _LinkedPolicy(self.policy, self.link)
         self.step, self.step_times, self.trace = 0, [], []
         self._held: tuple[np.ndarray, dict, int] | None = None  # sync: the action due when its chunk arrives
-        self._gripper = -1.0
+        self._before: np.ndarray | None = None  # sync: the last action before the query in flight
 
     def close(self) -> None:
         if self.link is not None:
@@ -436,13 +436,13 @@ class LinkActor:
             self._held = None
             self.trace.append({**row, "t": t})
             return action
-        gripper = self.executor.last_gripper
+        before = self.executor.last_action
         self.linked.step, self.linked.answer = t, None
         action = self._timed(lambda: self.executor.act(self.linked, obs))
         row = {**self.executor.trace[-1], "t": t}
         answer = self.linked.answer
         if answer is not None and answer.step > t:
-            self._held, self._gripper = (action, row, answer.step), gripper
+            self._held, self._before = (action, row, answer.step), before
             return self._idle(t)
         self.trace.append(row)
         return action
@@ -454,11 +454,9 @@ class LinkActor:
         return action
 
     def _idle(self, t: int) -> np.ndarray:
-        """Hold pose while the chunk is in flight: zero end-effector motion, the gripper as before the query."""
+        """Hold pose while the chunk is in flight, as after the action before the query (``ActionSpace.hold``)."""
         self.trace.append({"t": t, "idle": True})
-        action = np.zeros(7, np.float32)
-        action[6] = self._gripper
-        return action
+        return np.asarray(self.policy.spec.action_space.hold(self._before), np.float32)
 
     def rows(self) -> list[dict]:
         return list(self.executor.trace if self.execution.kind == "async" else self.trace)

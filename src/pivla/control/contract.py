@@ -13,6 +13,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from pivla.data.action_space import EE_DELTA, ActionSpace
+
 # Eq. 13's weight of U_act in U when nothing was calibrated (METHOD.md "AURD")
 DEFAULT_ETA = 0.7
 
@@ -38,6 +40,7 @@ class PolicySpec:
 
     ``cameras``: image keys, each an (image_size, image_size, 3) uint8 picture (other sizes are resized);
     ``proprio``: proprioceptive keys with their lengths; an ``instruction`` string completes an observation.
+    ``action_space``: what each of the D numbers of an action row means (the training data's).
     """
 
     cameras: tuple[str, ...]
@@ -45,10 +48,7 @@ class PolicySpec:
     proprio: tuple[tuple[str, int], ...]
     chunk: int  # K, actions per plan
     horizon: int  # H, AURD's nominal horizon and the value head's length
-    action_dim: int = 7
-    # the meaning of an action row: end-effector position and orientation deltas, then the gripper
-    # (-1 open, +1 closed), in the environment's own units
-    action_space: str = "ee_delta_pos3_rot3_gripper1"
+    action_space: ActionSpace = EE_DELTA
     latent_dim: int = 0
     target_cameras: int = 1  # leading cameras the target encoder reads (AURD's observed latent)
     target_proprio: bool = False  # the target latent reads the proprio keys too
@@ -58,20 +58,30 @@ class PolicySpec:
     def proprio_keys(self) -> tuple[str, ...]:
         return tuple(k for k, _ in self.proprio)
 
+    @property
+    def action_dim(self) -> int:
+        return self.action_space.dim
+
     def to_dict(self) -> dict[str, Any]:
         return {"cameras": list(self.cameras), "image_size": self.image_size,
                 "proprio": [[k, n] for k, n in self.proprio], "chunk": self.chunk, "horizon": self.horizon,
-                "action_dim": self.action_dim, "action_space": self.action_space, "latent_dim": self.latent_dim,
+                "action_dim": self.action_dim, "action_space": self.action_space.to_dict(),
+                "latent_dim": self.latent_dim,
                 "target_cameras": self.target_cameras, "target_proprio": self.target_proprio, "extra": dict(self.extra)}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> PolicySpec:
         return cls(cameras=tuple(d["cameras"]), image_size=int(d["image_size"]),
                    proprio=tuple((str(k), int(n)) for k, n in d["proprio"]), chunk=int(d["chunk"]),
-                   horizon=int(d["horizon"]), action_dim=int(d.get("action_dim", 7)),
-                   action_space=str(d.get("action_space", cls.action_space)), latent_dim=int(d.get("latent_dim", 0)),
+                   horizon=int(d["horizon"]), action_space=_action_space(d.get("action_space")),
+                   latent_dim=int(d.get("latent_dim", 0)),
                    target_cameras=int(d.get("target_cameras", 1)), target_proprio=bool(d.get("target_proprio", False)),
                    extra=dict(d.get("extra", {})))
+
+
+def _action_space(value: Any) -> ActionSpace:
+    """A spec's action space; servers written before it existed sent a name for the twin's (or nothing)."""
+    return ActionSpace.from_dict(value) if isinstance(value, Mapping) else EE_DELTA
 
 
 @runtime_checkable

@@ -1,7 +1,7 @@
 """Executors turn a chunking policy into one action per control step. All share one interface:
 
     executor.reset()                       # at the start of an episode
-    action = executor.act(policy, obs)     # physical 7-D action for this control step
+    action = executor.act(policy, obs)     # physical D-dim action for this control step (policy.spec.action_space)
 
 Each executor is built from its typed config (``FixedConfig``, ``EnsembleConfig``, ``AdaHorizonConfig``,
 ``AURDConfig``; ``make_executor``) and talks to the policy only through the ``ChunkPolicy`` contract. All
@@ -28,7 +28,7 @@ from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar, Literal, Union
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 import tyro
@@ -42,8 +42,8 @@ from pivla.control.math import (
     surprise,
     temporal_ensemble,
 )
+from pivla.data.action_space import ActionSpace
 
-GRIPPER = 6
 EVERYDAYVLA_EXTEND_BELOW, EVERYDAYVLA_REPLAN_ABOVE = 0.03, 0.06  # AdaHorizon's constants in its own code
 
 
@@ -62,7 +62,7 @@ class Plan:
         return float(self.values[min(k, len(self.values) - 1)])
 
     @classmethod
-    def from_output(cls, out: dict[str, np.ndarray]) -> "Plan":
+    def from_output(cls, out: dict[str, np.ndarray]) -> Plan:
         return cls(
             normalized=out["actions_normalized"],
             actions=out["actions"],
@@ -142,11 +142,11 @@ def _choice(cls: type) -> Any:
     return Annotated[cls, tyro.conf.subcommand(cls.kind)]
 
 
-ExecutorConfig = Union[_choice(AURDConfig), _choice(FixedConfig), _choice(EnsembleConfig), _choice(AdaHorizonConfig)]
+ExecutorConfig = _choice(AURDConfig) | _choice(FixedConfig) | _choice(EnsembleConfig) | _choice(AdaHorizonConfig)
 
 
 class BaseExecutor:
-    """State shared by every executor: the trace, the plan log, the step counter and the gripper held."""
+    """State shared by every executor: the trace, the plan log, the step counter and the last action."""
 
     name = "base"
 
@@ -159,7 +159,7 @@ class BaseExecutor:
     def reset(self) -> None:
         self.trace: list[dict] = []
         self.plans: list[tuple[int, str]] = []
-        self.t, self.last_gripper = 0, -1.0
+        self.t, self.last_action = 0, None
         self.queries = 0  # policy forward passes, the compute a chunking strategy saves or spends
         self._pred_min: float | None = None
 
@@ -173,16 +173,15 @@ class BaseExecutor:
 
     def _emit(self, action: np.ndarray, **row: Any) -> np.ndarray:
         action = np.asarray(action, np.float32)
-        self.last_gripper = float(action[GRIPPER])
+        self.last_action = action
         self.trace.append({"t": self.t, **{k: _jsonable(v) for k, v in row.items()}})
         self.t += 1
         return action
 
-    def hold_action(self) -> np.ndarray:
-        """Hold pose for one control step: zero end-effector delta, gripper unchanged."""
-        a = np.zeros(7, np.float32)
-        a[GRIPPER] = self.last_gripper
-        return a
+    def hold_action(self, space: ActionSpace) -> np.ndarray:
+        """Hold pose for one control step (``ActionSpace.hold``: zero motion and the gripper as it was for the
+        twin's end-effector deltas)."""
+        return np.asarray(space.hold(self.last_action), np.float32)
 
     def _pred_baseline(self, policy: ChunkPolicy) -> str:
         return getattr(policy.calibration, "pred_baseline", "none") or "none"
@@ -424,7 +423,7 @@ class AURDExecutor(BaseExecutor):
             if event is not None and self._pauses < self.cfg.max_pauses:
                 self._pauses += 1
                 self._end_plan(0, "pause")
-                return self._emit(self.hold_action(), plan_step=0, replanned=replanned, u_act=p.u_act[0],
+                return self._emit(self.hold_action(policy.spec.action_space), plan_step=0, replanned=replanned, u_act=p.u_act[0],
                                   u_pred=u_pred, u=u, v=v, event="pause", ended=ended, committed=False, **cut)
             self._pauses = 0
             self._k += 1
