@@ -48,8 +48,8 @@ def collect(cmd: CollectCommand) -> int:
 
     ec = EvalConfig(policy=cmd.policy, out=str(Path(cfg.out) / "rollout_eval"), env=cfg.env, suite=cfg.suite,
                     tasks=cfg.tasks, executor=cmd.executor, episodes=cfg.episodes, seed=cfg.seed,
-                    perturb=cfg.perturb, realism=cfg.realism, workers=cfg.workers, videos=0, record=cfg.out,
-                    split="train")
+                    perturb=cfg.perturb, realism=cfg.realism, workers=cfg.workers, dispatch=cfg.dispatch, videos=0,
+                    record=cfg.out, split="train")
     res = evaluate(ec)
     log.info("recorded %d rollouts (%d successes) -> %s", res["episodes"], res["successes"], cfg.out)
     return 0

@@ -15,12 +15,15 @@ import functools
 import logging
 import multiprocessing as mp
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
+
+import tyro
 
 from pivla.data.format import Episode, read_episodes, write_episodes
 from pivla.envs import TaskSpec, make_env, seeds, select_tasks
+from pivla.envs.backend import BackendConfig, check_backend
 from pivla.envs.libero import expert_actor
 from pivla.envs.libero.expert import ExpertConfig, RolloutExpert
 from pivla.envs.rollout import episode_seed, iter_jobs, run_episode
@@ -54,7 +57,9 @@ class CollectConfig:
     perturb: str | None = None
     """Twin perturbation spec, e.g. randomized_scene or unseen_env,static_distractors,level=3 (docs/twin.md)."""
     workers: int = 1
-    """Worker processes (results do not depend on it)."""
+    """Worker processes, or Ray actors with --backend ray (results do not depend on it)."""
+    dispatch: Annotated[BackendConfig, tyro.conf.arg(name="")] = field(default_factory=BackendConfig)
+    """Where the episodes run: --backend local | ray, --ray-address HOST:PORT (docs/cluster.md)."""
     realism: Literal["ideal", "servo"] = "ideal"
     """Twin actuation: ideal, or hobby-servo backlash, deadband and noise."""
     image_size: int | None = None
@@ -90,6 +95,7 @@ def collect_demos(cfg: CollectConfig) -> int:
         raise ValueError("episodes must be >= 1")
     if cfg.libero_step_factor < 1.0:
         raise ValueError(f"libero_step_factor must be >= 1 (the evaluation limit at least), got {cfg.libero_step_factor}")
+    check_backend(cfg.dispatch)
     if cfg.env == "libero":
         return _collect_libero(cfg)
     # The twin is imported only when it collects: its import sets the process's MuJoCo rendering variables.
@@ -157,7 +163,8 @@ def collect_demos(cfg: CollectConfig) -> int:
             owners += [spec] * need
             attempts[spec.name] += need
         left = collections.Counter(spec.name for spec in owners)
-        for spec, ep in zip(owners, iter_jobs(jobs, expert, workers=cfg.workers, desc="collect")):
+        for spec, ep in zip(owners, iter_jobs(jobs, expert, workers=cfg.workers, desc="collect",
+                                              backend=cfg.dispatch)):
             if ep.success or cfg.keep_failures:
                 kept[spec.name].append(ep)
             left[spec.name] -= 1
@@ -171,7 +178,8 @@ def _collect_libero(cfg: CollectConfig) -> int:
     """LIBERO demonstrations by the privileged-state scripted experts, one file per task; ``workers`` spreads
     whole tasks over processes (each LIBERO process holds ~2 GB)."""
     unsupported = {"perturb (use a LIBERO-PRO suite)": cfg.perturb, "paraphrase (use a *_lan suite)": cfg.paraphrase,
-                   "realism servo": cfg.realism != "ideal"}
+                   "realism servo": cfg.realism != "ideal",
+                   "backend ray (whole tasks run in local processes, --workers)": cfg.dispatch.backend == "ray"}
     given = [flag for flag, value in unsupported.items() if value]
     if given:
         raise ValueError(f"not supported with env libero: {', '.join(given)}")

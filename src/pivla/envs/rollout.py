@@ -24,6 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pivla.data.format import Episode
+from pivla.envs.backend import BackendConfig, ray_map
 
 log = logging.getLogger(__name__)
 
@@ -107,10 +108,15 @@ def _worker(job: tuple[EnvFactory, Actor, int]) -> Episode:
 
 
 def iter_jobs(jobs: Sequence[tuple[EnvFactory, int]], actor: Actor, *, workers: int = 1,
-              desc: str | None = None) -> Iterator[Episode]:
+              desc: str | None = None, backend: BackendConfig | None = None) -> Iterator[Episode]:
     """One episode per (env factory, seed) job, yielded in job order as each finishes. ``workers > 1`` uses
-    spawned processes (factories and actor must then be picklable, e.g. ``functools.partial(make_env, ...)``
-    and an un-reset expert); each worker builds one env per distinct factory and reuses it."""
+    spawned processes, ``backend`` ray that many Ray actors (factories and actor must then be picklable, e.g.
+    ``functools.partial(make_env, ...)`` and an un-reset expert); each worker builds one env per distinct
+    factory and reuses it."""
+    if backend is not None and backend.backend == "ray":
+        yield from ray_map(_worker, [(factory, actor, seed) for factory, seed in jobs], backend, workers=workers,
+                           desc=desc)
+        return
     progress = tqdm(total=len(jobs), desc=desc, unit="ep", disable=desc is None, leave=False)
     try:
         if workers <= 1 or len(jobs) <= 1:

@@ -17,10 +17,11 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import torch
+import tyro
 from tqdm import tqdm
 
 from pivla.control import run_episode
@@ -35,6 +36,7 @@ from pivla.control.executors import (
 from pivla.control.latency import parse_latency
 from pivla.data.format import read_episodes, write_episodes
 from pivla.envs import family, make_env, seeds, select_tasks
+from pivla.envs.backend import BackendConfig, check_backend, ray_map
 from pivla.envs.rollout import episode_seed
 from pivla.evaluation.stats import wilson_interval
 from pivla.io import atomic_write_json, open_log, read_json, write_mp4
@@ -83,7 +85,9 @@ class EvalConfig:
     realism: Literal["ideal", "servo"] = "ideal"
     """Twin actuation: ideal, or hobby-servo backlash, deadband and noise."""
     workers: int = 1
-    """Worker processes (results do not depend on it)."""
+    """Worker processes, or Ray actors with --backend ray (results do not depend on it)."""
+    dispatch: Annotated[BackendConfig, tyro.conf.arg(name="")] = field(default_factory=BackendConfig)
+    """Where the episodes run: --backend local | ray, --ray-address HOST:PORT (docs/cluster.md)."""
     videos: int = 2
     """Episodes with an MP4 (the first ones of the first tasks)."""
     max_steps: int | None = None
@@ -357,7 +361,7 @@ def load_rows(path: Path) -> list[dict]:
 
 
 # settings that do not change what an episode does, so a resumed evaluation may differ in them
-_RESUME_FREE = frozenset({"out", "episodes", "workers", "videos", "record"})
+_RESUME_FREE = frozenset({"out", "episodes", "workers", "dispatch", "videos", "record"})
 
 
 def _check_resumable(path: Path, cfg: EvalConfig) -> None:
@@ -389,6 +393,7 @@ def _check_settings(cfg: EvalConfig) -> None:
         check_execution(cfg.execution, cfg.executor)
     except ValueError as e:
         raise SystemExit(f"--execution {cfg.execution.kind}: {e}") from None
+    check_backend(cfg.dispatch)
     if cfg.seed_family is not None:
         if cfg.seed_family not in FAMILY_OF_SPLIT[cfg.split]:
             raise SystemExit(f"seed family {cfg.seed_family!r} cannot give {cfg.split} episodes (allowed: "
@@ -459,7 +464,11 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
             done[_key(row)] = row
             bar.update(1)
 
-        if workers == 1:
+        if cfg.dispatch.backend == "ray":  # in job order, as one local process writes them
+            for row in ray_map(_run_job, jobs, cfg.dispatch, workers=cfg.workers, setup=_init_worker,
+                               setup_args=(cfg, cfg.dispatch.ray_worker_cpus)):
+                consume(row)
+        elif workers == 1:
             caller_threads = torch.get_num_threads()
             try:
                 _init_worker(cfg, threads)
