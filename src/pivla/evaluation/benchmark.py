@@ -30,14 +30,16 @@ import logging
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
+import tyro
 
 from pivla.control.calibrate import CalibrationConfig, calibrate
 from pivla.control.executors import CUTS, ExecutorConfig, config_to_dict, executor_config, first_cut
 from pivla.data.format import read_env_meta, read_episodes, write_episodes
 from pivla.envs import select_tasks
+from pivla.envs.backend import BackendConfig
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.envs.tabletop.perturb import EVENT_LEVELS_CM
 from pivla.evaluation.ablate import INCREMENTAL, TRAIN_VARIANTS
@@ -133,6 +135,8 @@ class BenchmarkConfig:
     all of them)."""
     workers: int = 2
     """Worker processes for collection and evaluation."""
+    dispatch: Annotated[BackendConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=BackendConfig)
+    """Where the episodes run: --backend local | ray, --ray-address HOST:PORT (docs/cluster.md)."""
     calibration: CalibrationConfig = dataclasses.field(default_factory=CalibrationConfig)
     """AURD's calibration of every policy."""
 
@@ -245,7 +249,7 @@ class Benchmark:
         cfg, data, spec = self.cfg, self.out / "data", self.specs[name]
         base = CollectConfig(out="", episodes=cfg.train_episodes, seed_family="train", perturb="randomized_scene",
                              workers=cfg.workers, realism=cfg.realism, image_size=cfg.image_size, noise=cfg.noise,
-                             miss=cfg.miss)
+                             miss=cfg.miss, dispatch=cfg.dispatch)
         for suite in spec.data:
             if suite in {f"pick_place_{n}" for n in cfg.demo_counts}:
                 self._collect(dataclasses.replace(base, out=str(data / "pick_place"), suite="pick_place"))
@@ -331,7 +335,8 @@ class Benchmark:
         ec = EvalConfig(policy=str(self.run_dir(policy, seed)), out=str(target), suite=cell.suite, tasks=tasks,
                         executor=executor,
                         episodes=episodes, seed_family=split, condition=cell.condition,
-                        perturb=cell.perturb, realism=cell.realism or cfg.realism, workers=cfg.workers, videos=0,
+                        perturb=cell.perturb, realism=cell.realism or cfg.realism, workers=cfg.workers,
+                        dispatch=cfg.dispatch, videos=0,
                         max_steps=cfg.max_steps, record=str(record) if record else None, split=split)
         res = evaluate(ec, progress=False)
         lo, hi = res["ci95"]
@@ -519,7 +524,8 @@ def write_benchmark_report(out: str | Path) -> Path:
     benchmark directory calls this too, so both print the same figures)."""
     out = Path(out)
     stored = json.loads((out / "benchmark_config.json").read_text())
-    cfg = BenchmarkConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in stored.items() if k != "calibration"})
+    cfg = BenchmarkConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in stored.items()
+                             if k not in ("calibration", "dispatch")})
     decisions = json.loads((out / "decisions.json").read_text()) if (out / "decisions.json").exists() else {}
     res = Results(out)
     hardest = decisions.get("hardest", {}).get("cell")

@@ -16,10 +16,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
+
+import tyro
 
 from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
+from pivla.envs.backend import BackendConfig
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.evaluation.protocol import calibrate_on_rollouts, recipe, validation_rollouts
 from pivla.evaluation.report import write_report
@@ -83,6 +86,8 @@ class DemoConfig:
     """Episodes per task and level."""
     workers: int = 2
     """Worker processes for collection and evaluation."""
+    dispatch: Annotated[BackendConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=BackendConfig)
+    """Where the episodes run: --backend local | ray, --ray-address HOST:PORT (docs/cluster.md)."""
     calibration: CalibrationConfig = dataclasses.field(default_factory=CalibrationConfig)
     """AURD's calibration on the validation rollouts."""
 
@@ -125,7 +130,7 @@ def run_demo(cfg: DemoConfig) -> Path:
         raise ValueError(f"unknown conditions {unknown}; known: {', '.join(CONDITIONS)}")
     demos = CollectConfig(out=str(train_dir), suite="pick_place", env="tabletop", episodes=cfg.train_episodes,
                           seed_family="train", perturb=cfg.train_perturb, workers=cfg.workers, realism=cfg.realism,
-                          image_size=cfg.image_size, noise=cfg.noise, miss=cfg.miss)
+                          image_size=cfg.image_size, noise=cfg.noise, miss=cfg.miss, dispatch=cfg.dispatch)
     if _stage("collect train demos", (train_dir / "rock_right_demo.hdf5").exists()):
         timed("collect_train", lambda: collect_demos(demos))
     if _stage("collect validation demos", (val_dir / "rock_right_demo.hdf5").exists()):
@@ -139,7 +144,7 @@ def run_demo(cfg: DemoConfig) -> Path:
     if _stage("validation rollouts", (rollouts_dir / "rock_right_rollouts.hdf5").exists()):
         timed("validation_rollouts", lambda: _log_eval(validation_rollouts(
             run_dir, rollouts_dir, out / "data" / "val_rollouts_eval", cfg.val_episodes, cfg.seed, cfg.realism,
-            cfg.workers, family=True), "validation", "fixed"))
+            cfg.workers, family=True, dispatch=cfg.dispatch), "validation", "fixed"))
     if _stage("calibrate", (run_dir / "calibration.json").exists()):
         timed("calibrate", lambda: calibrate_on_rollouts(run_dir, rollouts_dir, val_dir, cfg.calibration))
     cells = [(c, e, *CONDITIONS[c], cfg.test_episodes, 2) for c in cfg.conditions for e in EXECUTORS]
@@ -150,7 +155,7 @@ def run_demo(cfg: DemoConfig) -> Path:
         if _stage(f"eval {condition} {executor}", (target / "results.json").exists()):
             ec = EvalConfig(policy=str(run_dir), out=str(target), executor=executor_config(executor),
                             episodes=episodes, seed_family="test", condition=code, perturb=perturb,
-                            realism=cfg.realism, workers=cfg.workers, videos=videos)
+                            realism=cfg.realism, workers=cfg.workers, dispatch=cfg.dispatch, videos=videos)
             timed(f"eval_{condition}_{executor}",
                   lambda ec=ec, c=condition, e=executor: _log_eval(evaluate(ec, progress=False), c, e))
     report = write_report(out)

@@ -21,11 +21,15 @@ import logging
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
 from pivla.data.format import read_env_meta
 from pivla.envs import select_tasks
+from pivla.envs.backend import BackendConfig
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.evaluation.protocol import calibrate_on_rollouts, validation_rollouts
 from pivla.evaluation.runner import EvalConfig, evaluate, load_rows
@@ -86,6 +90,9 @@ class LiberoRunConfig:
     """Official init states per task, from 0 (50: the whole protocol)."""
     workers: int = 2
     """Worker processes (each LIBERO process holds ~2 GB)."""
+    dispatch: Annotated[BackendConfig, tyro.conf.arg(name="")] = field(default_factory=BackendConfig)
+    """Where the rollouts and evaluations run: --backend local | ray, --ray-address HOST:PORT (docs/cluster.md);
+    demonstrations are collected by local processes."""
     mesh_faces: int = 4000
     """Visual meshes of more triangles are drawn simplified to about this many, in every stage (0: robosuite's
     full meshes): the frames differ by about one grey level on average and a step reading both cameras runs
@@ -142,7 +149,7 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
         timed("validation_rollouts", lambda: validation_rollouts(
             run, rollouts, out / "val_rollouts_eval", cfg.val_episodes, cfg.seed + 1, "ideal", cfg.workers,
             env="libero", suite=cfg.suite, tasks=cfg.tasks, max_steps=cfg.max_steps, libero_init="random",
-            libero_mesh_faces=cfg.mesh_faces))
+            libero_mesh_faces=cfg.mesh_faces, dispatch=cfg.dispatch))
     if _stage("calibrate", (run / "calibration.json").exists()):
         timed("calibrate", lambda: calibrate_on_rollouts(run, rollouts, data, cfg.calibration))
     for name in cfg.executors:
@@ -153,7 +160,7 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
             ec = EvalConfig(policy=str(run), out=str(target), env="libero", suite=cfg.suite, tasks=cfg.tasks,
                             executor=executor_config(name, **options), episodes=cfg.init_states, first_init_state=0,
                             seed=cfg.seed + 1000, workers=cfg.workers, videos=2, max_steps=cfg.max_steps,
-                            libero_mesh_faces=cfg.mesh_faces)
+                            libero_mesh_faces=cfg.mesh_faces, dispatch=cfg.dispatch)
             timed(f"eval_{name}", lambda: evaluate(ec))
     return write_libero_report(out, cfg.suite, timings.times)
 

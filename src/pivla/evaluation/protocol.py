@@ -14,6 +14,7 @@ from pathlib import Path
 from pivla.control.calibrate import CalibrationConfig, calibrate
 from pivla.control.executors import FixedConfig
 from pivla.data.datasets import read_dataset
+from pivla.envs.backend import BackendConfig
 from pivla.evaluation.runner import EvalConfig, evaluate
 from pivla.model.config import ModelConfig
 from pivla.policy import load_policy
@@ -39,7 +40,8 @@ def recipe(data: str, out: str, seed: int = 0, *, steps: int | None = None, batc
 def validation_rollouts(run: Path, record: Path, results: Path, episodes: int, seed: int, realism: str,
                         workers: int, env: str = "tabletop", suite: str = "pick_place", tasks: str | None = None,
                         max_steps: int | None = None, libero_init: str = "official",
-                        family: bool = False, libero_mesh_faces: int = 0) -> dict:
+                        family: bool = False, libero_mesh_faces: int = 0,
+                        dispatch: BackendConfig | None = None) -> dict:
     """Run the policy with fixed horizon on validation seeds and record every rollout into ``record``: the
     validation family's in-distribution episodes with ``family`` (twin), else the legacy ``seed`` (LIBERO:
     ``libero_init="random"`` plays sampled scenes, not the official init states)."""
@@ -47,7 +49,7 @@ def validation_rollouts(run: Path, record: Path, results: Path, episodes: int, s
                     episodes=episodes, seed=seed, realism=realism, workers=workers, videos=0, max_steps=max_steps,
                     record=str(record), split="validation", libero_init=libero_init,
                     libero_mesh_faces=libero_mesh_faces, seed_family="validation" if family else None,
-                    condition="in_distribution" if family else None)
+                    condition="in_distribution" if family else None, dispatch=dispatch or BackendConfig())
     return evaluate(ec, progress=False)
 
 
