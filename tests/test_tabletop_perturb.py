@@ -13,6 +13,7 @@ from pivla.envs.tabletop.expert import make_expert
 from pivla.envs.tabletop.perturb import (
     DEFAULT_WINDOW,
     NEAR_DISTANCE,
+    OBJECT_REACH,
     RECOVERY_CM,
     RECOVERY_WINDOW,
     TABLE_MATERIALS,
@@ -326,3 +327,26 @@ def test_recovery_spec_grammar():
             parse_perturb(bad)
     with pytest.raises(ValueError, match="recovery"):
         PerturbConfig(recovery=-0.1)
+
+
+def test_scatter_starts_its_share_of_objects_beside_their_region_and_the_task_still_holds():
+    """scatter=P moves the first object's start by up to RECOVERY_CM[1] in a share of the episodes, to spots the
+    displacement test may land it on; success is judged from the new start and the other draws stay as they were."""
+    plain = make_env("pick_place", "ball_left", render=False, perturb="randomized_scene")
+    env = make_env("pick_place", "ball_left", render=False, perturb="randomized_scene,scatter=0.5")
+    moved = 0
+    for seed in range(30):
+        plain.reset(seed=seed)
+        env.reset(seed=seed)
+        a = plain.privileged_state()["objects"]["ball"]["pos"][:2]
+        b = env.privileged_state()["objects"]["ball"]["pos"][:2]
+        shift = float(np.linalg.norm(b - a))
+        assert shift <= RECOVERY_CM[1] / 100 + 1e-6
+        assert OBJECT_REACH[0] <= np.linalg.norm(b) <= OBJECT_REACH[1] or shift < 1e-9
+        assert np.allclose(env._initial["ball"][:2], b, atol=2e-3)  # judged from where it starts
+        moved += shift > 1e-9
+        assert env.layout == plain.layout  # the task's own draw is untouched
+    assert 8 <= moved <= 22
+    assert parse_perturb("scatter=0.5,recovery=0.5").spec() == "recovery=0.5,scatter=0.5"
+    with pytest.raises(ValueError, match="scatter"):
+        parse_perturb("scatter=2")

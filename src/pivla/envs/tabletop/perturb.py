@@ -6,7 +6,7 @@ Spec grammar (``--perturb``), comma-separated, order-free, whitespace ignored::
     item   := "unseen_env" | "static_distractors" | "dynamic_distractors" | "camera_jitter"
             | "randomized_scene" | "level=" INT
             | "displace_object=" CM ["@" timing] | "push_arm=" CM ["@" timing]
-            | "recovery=" SHARE
+            | "recovery=" SHARE | "scatter=" SHARE
     timing := "near" | INT "-" INT
 
 - ``unseen_env``: a table texture, table colour, floor and wall colours, light direction and light colour
@@ -49,6 +49,11 @@ Spec grammar (``--perturb``), comma-separated, order-free, whitespace ignored::
   expert's recovery from them recorded (DART for disturbances rather than for noise). It draws from a stream of
   its own; an explicit event of the same kind takes its place.
 
+- ``scatter=P`` (training data): in a share P of the episodes the first sub-task's object starts up to
+  ``RECOVERY_CM[1]`` from its drawn spot, in any direction, where a displacement may land it (reachable, its
+  goal reachable, clear of the other task objects): the positions ``displace_object`` puts objects in, many
+  of them outside every task's region. Its own stream too; nothing changes for a task without an object.
+
 "Unseen tasks" are not a perturbation of the scene but a task split: use the suite ``pick_place_unseen``
 (training on ``pick_place_seen``). The visual perturbations (all but the two events) have no collisions
 and draw from a random stream of their own, so a visually perturbed episode has exactly the physics and
@@ -71,6 +76,7 @@ MAX_LEVEL = 6
 DEFAULT_LEVEL = 3
 FLAGS = ("unseen_env", "static_distractors", "dynamic_distractors", "camera_jitter", "randomized_scene")
 EVENTS = ("displace_object", "push_arm")
+SHARES = ("recovery", "scatter")  # training-data items: the share of episodes they change
 CLEAN_SCENE_SHARE = 0.5
 CLUTTER_SLOTS = 3
 DISTRACTOR_REGION = ((0.04, 0.34), (-0.22, 0.22))  # x, y ranges on the table
@@ -168,10 +174,13 @@ class PerturbConfig:
     displace_object: DisplaceObject | None = None
     push_arm: PushArm | None = None
     recovery: float = 0.0
+    scatter: float = 0.0
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.recovery) and 0.0 <= self.recovery <= 1.0):
-            raise ValueError(f"recovery: the share of disturbed episodes must be in 0..1, got {self.recovery}")
+        for name in SHARES:
+            share = getattr(self, name)
+            if not (np.isfinite(share) and 0.0 <= share <= 1.0):
+                raise ValueError(f"{name}: the share of episodes must be in 0..1, got {share}")
 
     @property
     def n_distractors(self) -> int:
@@ -197,14 +206,13 @@ class PerturbConfig:
             event = getattr(self, name)
             if event is not None:
                 items.append(f"{name}={event.distance * 100:g}{event.timing.spec()}")
-        if self.recovery:
-            items.append(f"recovery={self.recovery:g}")
+        items += [f"{name}={getattr(self, name):g}" for name in SHARES if getattr(self, name)]
         return ",".join(items) or "none"
 
     @property
     def active(self) -> bool:
         events = any(e is not None and e.distance > 0 for e in (self.displace_object, self.push_arm))
-        events = events or self.recovery > 0
+        events = events or self.recovery > 0 or self.scatter > 0
         return self.unseen_env or self.camera_jitter or self.randomized_scene or self.n_distractors > 0 or events
 
 
@@ -238,7 +246,7 @@ def parse_perturb(spec: str | None) -> PerturbConfig:
     flags = dict.fromkeys(FLAGS, False)
     events: dict[str, DisplaceObject | PushArm] = {}
     level: int | None = None
-    recovery: float | None = None
+    shares: dict[str, float] = {}
     for raw in spec.split(","):
         item = raw.strip()
         if not item or item == "none":
@@ -250,15 +258,16 @@ def parse_perturb(spec: str | None) -> PerturbConfig:
             level = int(value)
             if not 0 <= level <= MAX_LEVEL:
                 raise ValueError(f"perturbation {item!r}: level must be in 0..{MAX_LEVEL}")
-        elif item.startswith("recovery="):
-            if recovery is not None:
-                raise ValueError(f"perturbation {item!r}: recovery given twice")
+        elif item.split("=", 1)[0].strip() in SHARES and "=" in item:
+            name, value = (v.strip() for v in item.split("=", 1))
+            if name in shares:
+                raise ValueError(f"perturbation {item!r}: {name} given twice")
             try:
-                recovery = float(item.split("=", 1)[1])
+                shares[name] = float(value)
             except ValueError:
-                recovery = float("nan")
-            if not 0.0 < recovery <= 1.0:  # NaN fails too
-                raise ValueError(f"perturbation {item!r}: recovery must be a share of episodes in (0, 1]")
+                shares[name] = float("nan")
+            if not 0.0 < shares[name] <= 1.0:  # NaN fails too
+                raise ValueError(f"perturbation {item!r}: {name} must be a share of episodes in (0, 1]")
         elif item.split("=", 1)[0].strip() in EVENTS and "=" in item:
             name, event = _parse_event(item)
             if name in events:
@@ -270,13 +279,13 @@ def parse_perturb(spec: str | None) -> PerturbConfig:
             raise ValueError("unseen tasks are a task split, not a scene perturbation: use --suite pick_place_unseen")
         else:
             raise ValueError(f"unknown perturbation {item!r}; known: {', '.join(FLAGS)}, level=N, "
-                             "displace_object=CM[@timing], push_arm=CM[@timing], recovery=SHARE")
+                             "displace_object=CM[@timing], push_arm=CM[@timing], recovery=SHARE, scatter=SHARE")
     distract = flags["static_distractors"] or flags["dynamic_distractors"]
     if level is None:
         level = DEFAULT_LEVEL if distract else 0
     elif level > 0 and not distract:
         flags["static_distractors"] = True
-    return PerturbConfig(**flags, level=level, **events, recovery=recovery or 0.0)
+    return PerturbConfig(**flags, level=level, **events, **shares)
 
 
 def _random_colour(rng: np.random.Generator, avoid: list[np.ndarray]) -> np.ndarray:
@@ -442,8 +451,8 @@ class Perturber:
 
     def reset(self, data: mujoco.MjData, rng: np.random.Generator, keep_out: list[np.ndarray]) -> None:
         """Draw this episode's perturbation. ``keep_out``: xy points distractors must not cover."""
-        # own streams: no draw below changes (spawning a third child leaves the first two as they were)
-        events_rng = dict(zip((*EVENTS, "recovery"), rng.spawn(len(EVENTS) + 1)))
+        # own streams: no draw below changes (spawning more children leaves the first ones as they were)
+        events_rng = dict(zip((*EVENTS, *SHARES), rng.spawn(len(EVENTS) + len(SHARES))))
         m, c = self.model, self.clean
         m.cam_pos[self.cam], m.cam_quat[self.cam] = c["cam_pos"], c["cam_quat"]
         m.mat_rgba[:] = c["mat_rgba"]
@@ -456,6 +465,8 @@ class Perturber:
         if self.config.camera_jitter:
             self._jitter_camera(rng)
         points = [np.zeros(2), *keep_out]
+        if self.config.scatter > 0 and self.target is not None:
+            points += self._scatter(data, events_rng["scatter"])
         self._place_distractors(data, rng, points)
         if self.clutter_mocap:
             n = int(rng.integers(len(self.clutter_mocap) + 1))
@@ -471,6 +482,23 @@ class Perturber:
                 self._plans[name] = _Plan(event.distance, event.timing.trigger, step, float(r.uniform()))
         if self.config.recovery > 0:
             self._plan_recovery(events_rng["recovery"])
+
+    def _scatter(self, data: mujoco.MjData, r: np.random.Generator) -> list[np.ndarray]:
+        """Start this episode's object at a random landing spot (``scatter=P``); returns the points it and its
+        goal now take, for the distractors and clutter to keep clear of."""
+        if r.uniform() >= self.config.scatter:
+            return []
+        mujoco.mj_kinematics(self.model, data)  # the fingers' poses, which the landing test reads
+        _, qadr, _, _ = self._target_ids
+        start = data.qpos[qadr : qadr + 2].copy()
+        for _ in range(100):
+            angle = r.uniform(-np.pi, np.pi)
+            xy = start + r.uniform(0.0, RECOVERY_CM[1] / 100) * np.array([np.cos(angle), np.sin(angle)])
+            if self._landing_ok(xy, data):
+                data.qpos[qadr : qadr + 2] = xy
+                goal = self.task.goals[0]
+                return [xy] + ([tasks.move_target(xy, goal.direction)] if goal.kind == "move" else [])
+        return []
 
     def _plan_recovery(self, r: np.random.Generator) -> None:
         """This episode's recovery event, if it draws one (``recovery=P`` in the module docstring)."""
