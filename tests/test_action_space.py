@@ -106,7 +106,8 @@ def write_so101(root: Path, lengths=(12, 10, 14), names=JOINTS) -> dict:
         rows.append(row)
         start += T
     (root / "data/chunk-000").mkdir(parents=True)
-    pq.write_table(pa.table({k: pa.concat_arrays(v) for k, v in cols.items()}), root / "data/chunk-000/file-000.parquet")
+    pq.write_table(pa.table({k: pa.concat_arrays(v) for k, v in cols.items()}),
+                   root / "data/chunk-000/file-000.parquet")
     for cam, flip in (("front", False), ("wrist", True)):
         video = np.concatenate(frames)
         _video(root / f"videos/observation.images.{cam}/chunk-000/file-000.mp4", video[:, ::-1] if flip else video)
@@ -308,7 +309,8 @@ def test_a_7d_run_trains_and_acts_as_before_action_spaces(tmp_path, inputs):
                gripper_states=np.array([.02, .02], np.float32), instruction="move the square left")
     out = policy.infer(obs)
     want = np.load(FIXTURE)
-    assert hashlib.sha256(np.ascontiguousarray(batch["images"]).tobytes()).hexdigest() == str(want["batch_images_sha256"])
+    assert (hashlib.sha256(np.ascontiguousarray(batch["images"]).tobytes()).hexdigest()
+            == str(want["batch_images_sha256"]))
     for key in want.files:
         if key.startswith("batch_") and key != "batch_images_sha256":
             np.testing.assert_array_equal(batch[key[6:]], want[key], err_msg=key)

@@ -47,7 +47,8 @@ def test_departures_group_aurds_paired_episodes_by_its_first_cut(tmp_path):
     """Seed 0: AURD cuts nothing in episode 0 (both solve it), replans first in 1 (only AURD solves it) and 2
     (only fixed); seed 1: it pauses first in episode 0 (only fixed). Pooled: none 1: 0 / 0, replan 2: 1 / 1,
     pause 1: 0 / 1, prune 0."""
-    traces = {0: [[{"ended": "complete"}], [{"ended": "replan"}], [{"ended": "complete"}, {"ended": "replan", "event": "pause"}]],
+    traces = {0: [[{"ended": "complete"}], [{"ended": "replan"}],
+                  [{"ended": "complete"}, {"ended": "replan", "event": "pause"}]],
               1: [[{"event": "pause", "ended": "complete"}]]}
     _write_eval(tmp_path, 0, "main", "unseen_env", "aurd", [1, 1, 0], traces[0])
     _write_eval(tmp_path, 0, "main", "unseen_env", "fixed", [1, 0, 1])

@@ -28,7 +28,8 @@ KEYS = {"success_rate", "ci95", "episodes", "per_task", "executor", "mean_execut
 def tiny_policy(tmp_path_factory):
     root = tmp_path_factory.mktemp("evalpolicy")
     for task in (0, 1):
-        eps = collect_episodes(functools.partial(make_env, "pick_place", task, image_size=32), make_expert(0.1), 2, seed=task)
+        eps = collect_episodes(functools.partial(make_env, "pick_place", task, image_size=32), make_expert(0.1), 2,
+                               seed=task)
         write_episodes(root / "data" / f"task{task}.hdf5", eps)
     run = train(tiny_train_config(root / "data", root / "run", steps=10, val_fraction=0.0))
     calib, stats = calibrate(load_policy(run, device="cpu"), read_dataset(root / "data"), source="test")
@@ -37,8 +38,8 @@ def tiny_policy(tmp_path_factory):
 
 
 def _eval(run, out, executor="aurd", workers=1, seed=7, **kw):
-    cfg = EvalConfig(policy=str(run), out=str(out), tasks="0,1", executor=executor_config(executor), episodes=2, seed=seed,
-                     workers=workers, max_steps=12, videos=1, **kw)
+    cfg = EvalConfig(policy=str(run), out=str(out), tasks="0,1", executor=executor_config(executor), episodes=2,
+                     seed=seed, workers=workers, max_steps=12, videos=1, **kw)
     return evaluate(cfg, progress=False)
 
 
@@ -179,8 +180,8 @@ def test_recordings_survive_an_interrupted_evaluation(tiny_policy, tmp_path):
     import numpy as np
 
     out, rec = tmp_path / "e", tmp_path / "rec"
-    cfg = EvalConfig(policy=str(tiny_policy), out=str(out), tasks="0", executor=executor_config("fixed"), episodes=1, seed=7,
-                     max_steps=6, videos=0, record=str(rec))
+    cfg = EvalConfig(policy=str(tiny_policy), out=str(out), tasks="0", executor=executor_config("fixed"), episodes=1,
+                     seed=7, max_steps=6, videos=0, record=str(rec))
     evaluate(cfg, progress=False)  # "interrupted" after one episode
     first = read_dataset(rec)
     cfg.episodes = 3
@@ -227,7 +228,8 @@ def test_calibrate_on_the_runs_held_out_episodes(synthetic_data, tmp_path, capsy
     defaults = CalibrationConfig()
     assert stats["percentiles"] == {"tau_low": defaults.tau_low_pct, "tau_high": defaults.tau_high_pct,
                                     "v_thresh": defaults.v_pct}
-    assert main(["calibrate", "--policy", str(run), "--data", str(synthetic_data), "--held-out", "--calibration.tau-high-pct", "60"]) == 0
+    assert main(["calibrate", "--policy", str(run), "--data", str(synthetic_data), "--held-out",
+                 "--calibration.tau-high-pct", "60"]) == 0
     lower = json.loads((run / "calibration.json").read_text())
     assert json.loads((run / "calibration_stats.json").read_text())["percentiles"]["tau_high"] == 60
     assert lower["tau_low"] == saved["tau_low"] and lower["tau_high"] <= saved["tau_high"]
@@ -291,7 +293,8 @@ def test_ablation_trains_calibrates_and_tabulates_variants(tiny_policy, tmp_path
     t7 = table.split("## Table 7")[1].split("##")[0].strip().splitlines()[4:]
     assert [r.split(" | ")[0] for r in t7] == ["| continuous head, IL only, fixed H=5 (OpenVLA-OFT)",
                                               "| + dual heads (discrete + continuous)",
-                                              "| + unified loss (L_IL + alpha L_RL + beta L_SP)", "| + AURD (full PI-VLA)"]
+                                              "| + unified loss (L_IL + alpha L_RL + beta L_SP)",
+                                              "| + AURD (full PI-VLA)"]
     assert t7[0].split(" | ")[2] == "" and all(r.split(" | ")[2].startswith(("+", "-")) for r in t7[1:])
     runs = tmp_path / "abl" / "runs"
     il_loss = json.loads((runs / "il_only" / "config.json").read_text())["loss"]

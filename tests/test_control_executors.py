@@ -31,7 +31,8 @@ class ScriptedPolicy:
         deq = a.copy()
         deq[:, 2] = self.u_act * 7  # mean |cont - deq| over 7 dims = u_act
         return {"actions": a, "actions_normalized": a / 10, "continuous_normalized": a, "dequantized": deq,
-                "u_act": action_uncertainty(a, deq), "values": self.values, "latents": np.zeros((8, 4)), "value_now": np.float32(1)}
+                "u_act": action_uncertainty(a, deq), "values": self.values, "latents": np.zeros((8, 4)),
+                "value_now": np.float32(1)}
 
     def encode(self, obs):
         self.encoded.append(obs["t"])

@@ -56,7 +56,8 @@ def test_composite_uncertainty_hand_computed():
     pred = np.array([[0.0, 0.0], [3.0, 4.0]])
     u_act = np.array([(0.2 + 0.4) / 2, 0.1])
     np.testing.assert_allclose(action_uncertainty(cont, deq), u_act)
-    np.testing.assert_allclose(composite_uncertainty(cont, deq, obs, pred, eta=0.7), 0.7 * u_act + 0.3 * np.array([1.0, 5.0]))
+    np.testing.assert_allclose(composite_uncertainty(cont, deq, obs, pred, eta=0.7),
+                               0.7 * u_act + 0.3 * np.array([1.0, 5.0]))
     # no observation yet: U_pred = 0
     assert composite_uncertainty(cont[0], deq[0], None, None, eta=0.7) == pytest.approx(0.7 * 0.3)
 

@@ -54,7 +54,8 @@ def _grads(model, loss):
         "backbone": model.backbone, "discrete": model.discrete_head, "continuous": model.continuous_head,
         "value": model.value_head, "state": model.state_predictor, "decoder": model.decoder,
     }
-    got = {k for k, mod in groups.items() if any(p.grad is not None and p.grad.abs().sum() > 0 for p in mod.parameters())}
+    got = {k for k, mod in groups.items()
+           if any(p.grad is not None and p.grad.abs().sum() > 0 for p in mod.parameters())}
     if model.log_sigma.grad is not None and model.log_sigma.grad.abs().sum() > 0:
         got.add("log_sigma")
     assert all(p.grad is None for p in model.target.parameters()), "the target encoder must never train"
@@ -282,8 +283,8 @@ def test_spatial_softmax_finds_a_peak_where_it_is():
 def test_keypoint_tokens_can_be_switched_off():
     """keypoints=0 drops the spatial-softmax tokens (and their parameters); both variants give the same heads."""
     on = CMSModel(CFG, vocab_size=10)
-    off_cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32),
-                                                                 keypoints=0))
+    off_cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1,
+                                                                 vision_channels=(16, 16, 32, 32), keypoints=0))
     off = CMSModel(off_cfg, vocab_size=10)
     assert on.backbone.keypoints is not None and off.backbone.keypoints is None
     assert not any("keypoints" in k or "kp_" in k for k in off.state_dict())
@@ -325,8 +326,8 @@ def test_pooled_image_tokens_replace_the_grid():
     """grid_tokens=False gives each camera one pooled token (plus its keypoint token): the same heads from a
     much shorter sequence."""
     def cfg(grid: bool) -> ModelConfig:
-        return ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1, vision_channels=(16, 16, 32, 32),
-                                                                  grid_tokens=grid))
+        return ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1,
+                                                                  vision_channels=(16, 16, 32, 32), grid_tokens=grid))
 
     grid, pooled = CMSModel(cfg(True), vocab_size=10), CMSModel(cfg(False), vocab_size=10)
     n_cam = len(CFG.cameras)

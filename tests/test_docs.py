@@ -43,7 +43,8 @@ def test_every_cited_anchor_exists():
 def test_no_page_ships_a_placeholder():
     """A page a user reads never holds a stand-in for text or figures still to come."""
     marker = re.compile(r"(?<![\w-])[A-Z_]*(PLACEHOLDER|TODO|TBD|FIXME|XXX)\b")
-    found = [f"{p.relative_to(ROOT)}:{i}: {line.strip()}" for p in [*ROOT.joinpath("docs").glob("*.md"), ROOT / "README.md"]
+    found = [f"{p.relative_to(ROOT)}:{i}: {line.strip()}"
+             for p in [*ROOT.joinpath("docs").glob("*.md"), ROOT / "README.md"]
              for i, line in enumerate(p.read_text().splitlines(), 1) if marker.search(line)]
     assert not found, "placeholders:\n" + "\n".join(found)
 

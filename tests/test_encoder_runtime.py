@@ -23,7 +23,8 @@ def make_policy(run_dir, runtime="onnx", seed=0, target="ema", downsample=1, cam
                       target_encoder=TargetEncoderConfig(name=target, grid=4, downsample=downsample, cameras=cameras,
                                                          stages=stages, pool_grid=pool_grid))
     text = WordTokenizer.build(["pick up the block"], cfg.max_text_len)
-    stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7), StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim))
+    stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7),
+                      StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim))
     return Policy(CMSModel(cfg, len(text.vocab)), stats, text, run_dir=run_dir, encoder_runtime=runtime)
 
 

@@ -117,7 +117,8 @@ def test_compare_reports_the_table_the_interval_and_the_test():
     reverse = compare(b, a)
     assert reverse["diff"] == pytest.approx(-0.2) and reverse["ci95"] == pytest.approx([-0.521086, 0.186962], abs=2e-6)
     assert compare([1, 1, 1], [1, 1, 1]) | {"ci95": None} == {
-        "n": 3, "successes_a": 3, "successes_b": 3, "only_a": 0, "only_b": 0, "diff": 0.0, "ci95": None, "p_mcnemar": 1.0}
+        "n": 3, "successes_a": 3, "successes_b": 3, "only_a": 0, "only_b": 0, "diff": 0.0, "ci95": None,
+        "p_mcnemar": 1.0}
 
 
 def test_paired_successes_aligns_rows_and_refuses_other_episodes():

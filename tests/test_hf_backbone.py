@@ -26,7 +26,8 @@ SIZE = 32
 @pytest.fixture(scope="module")
 def dirs(tmp_path_factory):
     root = tmp_path_factory.mktemp("hf")
-    return {"vlm": make_tiny_vlm(root / "vlm", image_size=SIZE), "dino": make_tiny_dinov2(root / "dino", image_size=SIZE)}
+    return {"vlm": make_tiny_vlm(root / "vlm", image_size=SIZE),
+            "dino": make_tiny_dinov2(root / "dino", image_size=SIZE)}
 
 
 def model_cfg(dirs, target="dinov2", **backbone) -> ModelConfig:
@@ -37,7 +38,8 @@ def model_cfg(dirs, target="dinov2", **backbone) -> ModelConfig:
 
 def make_batch(text: HFTextTokenizer, b: int = 2, seed: int = 0) -> dict[str, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
-    ids, mask = zip(*(text.encode(s) for s in ["move the square left", "pick the red block and put it on the plate"][:b]))
+    ids, mask = zip(*(text.encode(s)
+                      for s in ["move the square left", "pick the red block and put it on the plate"][:b]))
     return {"images": torch.rand(b, 2, 3, SIZE, SIZE, generator=g), "text_ids": torch.from_numpy(np.stack(ids)),
             "text_mask": torch.from_numpy(np.stack(mask)), "proprio": torch.randn(b, 8, generator=g)}
 

@@ -44,7 +44,8 @@ def test_two_process_training_keeps_ranks_identical(tmp_path):
         batch_size=2, warmup=1, lr=1e-2, threads=1, progress=False, log_every=1, eval_every=100, ckpt_every=100,
         model=ModelConfig(image_size=32, max_text_len=24,
                           backbone=BackboneConfig(name="hf", path=str(make_tiny_vlm(tmp_path / "vlm")), lora_rank=8),
-                          target_encoder=TargetEncoderConfig(name="dinov2", path=str(make_tiny_dinov2(tmp_path / "dino")))))
+                          target_encoder=TargetEncoderConfig(name="dinov2",
+                                                             path=str(make_tiny_dinov2(tmp_path / "dino")))))
     result = run_two_process(tmp_path, WORKER, cfg)
     assert result["world"] == 2
     assert result["max_diff"] == 0.0

@@ -233,7 +233,8 @@ def twin():
 
 def _aurd_options(env, policy):
     """Thresholds inside this policy's U, so that AURD cuts plans (as tests/test_serving.py chooses them)."""
-    probe = run_episode(env, policy, make_executor("aurd", tau_low=1e9, tau_high=1e9, v_thresh=-1e9), seed=3, max_steps=20)
+    probe = run_episode(env, policy, make_executor("aurd", tau_low=1e9, tau_high=1e9, v_thresh=-1e9), seed=3,
+                        max_steps=20)
     u = [row["u"] for row in probe.trace]
     return {"tau_low": float(np.percentile(u, 30)), "tau_high": float(np.percentile(u, 80)), "v_thresh": 0.0}
 

@@ -167,7 +167,8 @@ def test_demonstrations_get_the_step_factor_times_the_suite_limit(tmp_path, monk
 
     monkeypatch.setattr(collect, "make_env", env_seen)
     spec = TaskSpec(suite="libero_goal", index=3, name="task3", instruction="put it inside", max_steps=300)
-    cfg = collect.CollectConfig(out=str(tmp_path), env="libero", suite="libero_goal", episodes=2, libero_step_factor=1.5)
+    cfg = collect.CollectConfig(out=str(tmp_path), env="libero", suite="libero_goal", episodes=2,
+                                libero_step_factor=1.5)
     with pytest.raises(RuntimeError, match="env made"):
         collect._collect_libero_task((cfg, spec))
     assert seen["max_steps"] == 450

@@ -29,7 +29,8 @@ CALIBRATION = {"shoulder_pan": (-30, 1000, 3000), "shoulder_lift": (12, 800, 330
 
 
 def calibration(arm_id: str = "follower") -> SO101Calibration:
-    return SO101Calibration(arm_id, {name: MotorCalibration(i, 0, *CALIBRATION[name]) for i, name in enumerate(MOTORS, 1)})
+    return SO101Calibration(arm_id,
+                            {name: MotorCalibration(i, 0, *CALIBRATION[name]) for i, name in enumerate(MOTORS, 1)})
 
 
 def calibrated_sim(speed: float = 3000.0) -> SimBus:

@@ -53,7 +53,8 @@ TEXT = "pick up the red block"
 
 def write_run(run: Path, target_proprio: float = 0.0) -> Path:
     """An untrained tiny policy as ``pivla train`` lays out a run (32 px, target encoder downsampled 2x)."""
-    model_cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=2, vision_channels=(16, 32, 32, 32)),
+    model_cfg = ModelConfig(image_size=32,
+                            backbone=BackboneConfig(d_model=64, n_layers=2, vision_channels=(16, 32, 32, 32)),
                             target_encoder=TargetEncoderConfig(downsample=2, proprio=target_proprio))
     torch.manual_seed(0)
     text = WordTokenizer.build([TEXT, "put the block in the drawer"], model_cfg.max_text_len)
@@ -65,7 +66,8 @@ def write_run(run: Path, target_proprio: float = 0.0) -> Path:
     ck.atomic_write_json(run / ck.CONFIG_FILE, cfgmod.to_dict(TrainConfig(out=str(run), model=model_cfg)))
     ck.atomic_write_json(run / ck.STATS_FILE, stats.to_dict())
     ck.atomic_write_json(run / ck.TOKENIZER_FILE, text.to_dict())
-    ck.atomic_write_json(run / ck.CALIBRATION_FILE, {"tau_low": 0.3, "tau_high": 0.6, "v_thresh": 0.0, "source": "test"})
+    ck.atomic_write_json(run / ck.CALIBRATION_FILE,
+                         {"tau_low": 0.3, "tau_high": 0.6, "v_thresh": 0.0, "source": "test"})
     return run
 
 
@@ -186,11 +188,13 @@ def test_msgpack_numpy_round_trip_and_refusals():
         packb({"x": np.array(["text"])})
 
     def header(changes=None):
-        return msgpack.packb({b"__ndarray__": True, b"data": b"\0" * 8, b"dtype": "<f4", b"shape": [2], **(changes or {})})
+        return msgpack.packb({b"__ndarray__": True, b"data": b"\0" * 8, b"dtype": "<f4", b"shape": [2],
+                              **(changes or {})})
 
     assert unpackb(header()).tolist() == [0.0, 0.0]
-    for changes, message in [({b"dtype": "|O"}, "refused"), ({b"dtype": "i4,O"}, "refused"), ({b"dtype": "|V8"}, "refused"),
-                        ({b"dtype": "<c8"}, "refused"), ({b"dtype": "nonsense"}, "unknown dtype"),
+    for changes, message in [({b"dtype": "|O"}, "refused"), ({b"dtype": "i4,O"}, "refused"),
+                        ({b"dtype": "|V8"}, "refused"), ({b"dtype": "<c8"}, "refused"),
+                        ({b"dtype": "nonsense"}, "unknown dtype"),
                         ({b"shape": [3]}, "needs 12 bytes"), ({b"shape": [2**40, 2**40]}, "bytes of data"),
                         ({b"shape": [-2]}, "non-negative"), ({b"data": "text"}, "must be bytes")]:
         with pytest.raises(DecodeError, match=message):
@@ -298,7 +302,8 @@ LOCAL_REFUSALS = {
     "missing camera": ({"eye_in_hand_rgb": None}, r"lacks camera\(s\) \['eye_in_hand_rgb'\]"),
     "float image": ({"agentview_rgb": np.zeros((32, 32, 3), np.float32)}, "'agentview_rgb' must be an HxWx3 uint8"),
     "NaN proprio": ({"ee_pos": np.array([0.0, np.nan, 0.0], np.float32)}, "'ee_pos' contains NaN or inf"),
-    "proprio length": ({"gripper_states": np.zeros(3, np.float32)}, "'gripper_states' has 3 numbers, the policy was trained on 2"),
+    "proprio length": ({"gripper_states": np.zeros(3, np.float32)},
+                       "'gripper_states' has 3 numbers, the policy was trained on 2"),
     "proprio text": ({"ee_pos": "up"}, "must hold numbers"),
     "missing proprio": ({"ee_ori": None}, "missing proprio key 'ee_ori'"),
     "missing instruction": ({"instruction": None}, "missing 'instruction'"),
@@ -430,7 +435,8 @@ def test_encoding_on_the_server_when_asked(server, local):
         assert policy.encoder_runtime == "server"
         obs = observation(4)
         assert np.array_equal(policy.encode(obs), local.encode(obs))
-        assert np.allclose(policy.encode_batch([obs, observation(5)]), local.encode_batch([obs, observation(5)]), atol=1e-6)
+        assert np.allclose(policy.encode_batch([obs, observation(5)]), local.encode_batch([obs, observation(5)]),
+                           atol=1e-6)
 
 
 def test_a_latent_that_reads_the_proprio(tmp_path):
@@ -448,7 +454,8 @@ def test_a_latent_that_reads_the_proprio(tmp_path):
     np.testing.assert_allclose(local.encode(obs), eager.encode(obs), atol=1e-5)
     pushed = {**obs, "ee_pos": obs["ee_pos"] + np.array([0.06, 0.0, 0.0], np.float32)}
     moved = local.encode(pushed) - local.encode(obs)  # the run's proprio statistics: mean 0, std 1
-    np.testing.assert_allclose(moved, np.eye(1, local.spec.latent_dim, local.spec.latent_dim - 8)[0] * 0.06 / np.sqrt(8),
+    np.testing.assert_allclose(moved,
+                               np.eye(1, local.spec.latent_dim, local.spec.latent_dim - 8)[0] * 0.06 / np.sqrt(8),
                                atol=1e-6)
     with running_server(run, tmp_path) as (port, _), RemotePolicy(f"127.0.0.1:{port}", api_key=KEY) as remote:
         assert remote.encoder_runtime == "server" and remote.spec.target_proprio
@@ -484,7 +491,8 @@ def test_remote_twin_episode_equals_the_local_one_step_for_step(remote, local, e
     env = make_env("tabletop", "pick_place", 0, image_size=32)
     options = {"horizon": 3}
     if executor == "aurd":  # thresholds inside this policy's U, so that it cuts plans on the client's latents
-        probe = run_episode(env, local, make_executor("aurd", tau_low=1e9, tau_high=1e9, v_thresh=-1e9), seed=3, max_steps=20)
+        probe = run_episode(env, local, make_executor("aurd", tau_low=1e9, tau_high=1e9, v_thresh=-1e9), seed=3,
+                            max_steps=20)
         u = [row["u"] for row in probe.trace]
         options = {"tau_low": float(np.percentile(u, 30)), "tau_high": float(np.percentile(u, 80)), "v_thresh": 0.0}
     a = run_episode(env, local, make_executor(executor, **options), seed=5, max_steps=20, keep_episode=True)
@@ -654,7 +662,8 @@ print(json.dumps({"spec": meta["spec"], "actions": out["actions"].tolist(), "dty
 """
 
 
-@pytest.mark.skipif(not OPENPI_PYTHON.exists(), reason=".venv-openpi is absent (scripts/setup-openpi-client.sh creates it)")
+@pytest.mark.skipif(not OPENPI_PYTHON.exists(),
+                    reason=".venv-openpi is absent (scripts/setup-openpi-client.sh creates it)")
 def test_openpi_published_client_works_unchanged(server, local):
     proc = subprocess.run([str(OPENPI_PYTHON), "-c", OPENPI_SCRIPT, str(server[0]), KEY], capture_output=True,
                           text=True, timeout=120)

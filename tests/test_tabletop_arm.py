@@ -291,7 +291,8 @@ def test_euler_round_trip():
     for _ in range(50):
         e = rng.uniform([-3, -1.5, -3], [3, 1.5, 3])
         assert np.allclose(arm.mat_to_euler(arm.euler_to_mat(e)), e, atol=1e-9)
-        assert np.allclose(arm.mat_from_rotvec(arm.rotvec_from_mat(arm.euler_to_mat(e))), arm.euler_to_mat(e), atol=1e-9)
+        assert np.allclose(arm.mat_from_rotvec(arm.rotvec_from_mat(arm.euler_to_mat(e))), arm.euler_to_mat(e),
+                           atol=1e-9)
 
 
 def test_home_pose_is_top_down():

@@ -7,8 +7,8 @@ import hashlib
 import numpy as np
 import pytest
 
-from pivla.envs.tabletop import make_env, parse_perturb, tasks
 from pivla.envs.rollout import run_episode
+from pivla.envs.tabletop import make_env, parse_perturb, tasks
 from pivla.envs.tabletop.expert import make_expert
 from pivla.envs.tabletop.perturb import (
     DEFAULT_WINDOW,

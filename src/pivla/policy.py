@@ -179,7 +179,8 @@ class Policy:
         """One observation -> actions (K,D) un-normalised from the primary head (the gripper from
         ``gripper_head``), in the units of ``spec.action_space``; actions_normalized (K,D), continuous_normalized
         and dequantized (K,D) (both heads, normalized; Eq. 12 for the latter), u_act (K,) (Eq. 13; zero for a
-        policy trained with one head), discrete_probs (K,D,256), latents (K,d_z) predicted next-observation latents, values (H,), value_now ()."""
+        policy trained with one head), discrete_probs (K,D,256), latents (K,d_z) predicted next-observation
+        latents, values (H,), value_now ()."""
         return {k: v[0] for k, v in self.infer_batch([obs]).items()}
 
     def _target_images(self, obs_list: Sequence[Mapping[str, Any]]) -> np.ndarray:

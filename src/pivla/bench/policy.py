@@ -30,8 +30,8 @@ def default_policy(run: str | None = None, encoder_runtime: str = "auto") -> Pol
     cfg = with_twin_inputs(TrainConfig().model)
     text = WordTokenizer.build([INSTRUCTION], cfg.max_text_len)
     layout = [("ee_pos", 3), ("ee_ori", 3), ("gripper_states", 2)]
-    stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7), StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim),
-                      proprio_layout=layout)
+    stats = NormStats(ActionStats([-1.0] * 7, [1.0] * 7),
+                      StandardStats([0.0] * cfg.proprio_dim, [1.0] * cfg.proprio_dim), proprio_layout=layout)
     return Policy(CMSModel(cfg, len(text.vocab)), stats, text, encoder_runtime=encoder_runtime)
 
 

@@ -29,7 +29,8 @@ class RobotBenchConfig:
 
 def _summary(name: str, lat_ms: list[float]) -> dict:
     lat = sorted(lat_ms)
-    return {f"{name}_ms_median": round(statistics.median(lat), 3), f"{name}_ms_p90": round(lat[int(0.9 * (len(lat) - 1))], 3)}
+    return {f"{name}_ms_median": round(statistics.median(lat), 3),
+            f"{name}_ms_p90": round(lat[int(0.9 * (len(lat) - 1))], 3)}
 
 
 def measure(board: Board, n: int) -> dict:

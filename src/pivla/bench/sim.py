@@ -126,7 +126,7 @@ def expert_success(episodes: int, seed: int = 0, suites: tuple[str, ...] = ("pic
     for realism in realisms:
         for suite in suites:
             results, steps = [], []
-            for i, task in enumerate(get_suite(suite)):
+            for i, _task in enumerate(get_suite(suite)):
                 env = make_env(suite, i, realism=realism, render=False)
                 eps = collect_episodes(lambda env=env: env, make_expert(0.0), episodes, seed=seed + i)
                 results += [e.success for e in eps]

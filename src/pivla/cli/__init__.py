@@ -28,7 +28,8 @@ A mistake in the input prints one line naming it; --debug anywhere on the line s
 """
 
 COMMANDS: dict[str, Command | Group] = {
-    "demo": Command("pivla.cli.experiments", "demo", "the main job on the twin: collect, train, calibrate, evaluate, report"),
+    "demo": Command("pivla.cli.experiments", "demo",
+                    "the main job on the twin: collect, train, calibrate, evaluate, report"),
     "collect": Command("pivla.cli.data", "collect", "expert demonstrations, or policy rollouts with --policy"),
     "train": Command("pivla.cli.train", "train", "train a CMS policy (the validated recipe unless told otherwise)"),
     "calibrate": Command("pivla.cli.evaluate", "calibrate", "AURD's thresholds from validation data"),

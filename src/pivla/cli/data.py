@@ -107,5 +107,6 @@ def convert(cfg: ConvertConfig) -> int:
         res = run_convert(cfg)
     except DatasetError as e:
         raise SystemExit(f"pivla data convert: {e}") from e
-    print(f"{res.source_format} -> {cfg.to}: {res.episodes} episodes, {res.frames} frames at {res.fps} fps -> {res.dst}")
+    print(f"{res.source_format} -> {cfg.to}: {res.episodes} episodes, {res.frames} frames at {res.fps} fps "
+          f"-> {res.dst}")
     return 0

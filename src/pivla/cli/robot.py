@@ -27,7 +27,8 @@ log = logging.getLogger("pivla.robot")
 
 TELEOP_KEYS = {"w": (0, 1), "s": (0, -1), "a": (1, 1), "d": (1, -1), "r": (2, 1), "f": (2, -1),
                "q": (5, 1), "e": (5, -1)}
-TELEOP_HELP = "w/s: +x/-x  a/d: +y/-y  r/f: up/down  q/e: yaw  space: gripper  n: episode ok  b: episode failed  x: quit"
+TELEOP_HELP = ("w/s: +x/-x  a/d: +y/-y  r/f: up/down  q/e: yaw  space: gripper  n: episode ok  b: episode failed  "
+               "x: quit")
 
 
 @dataclass
@@ -270,7 +271,8 @@ def calibrate_servos(cmd: CalibrateServosCommand) -> int:
             raise SystemExit(f"channel {lim.channel}: board kept {got}, expected {lim}")
     calib.save(path)
     print(f"wrote {path}; board limits programmed: "
-          + ", ".join(f"ch{l.channel} {l.min_us}-{l.max_us} (home {l.home_us})" for l in calib.board_limits(robot.home_q)))
+          + ", ".join(f"ch{limit.channel} {limit.min_us}-{limit.max_us} (home {limit.home_us})"
+                      for limit in calib.board_limits(robot.home_q)))
     robot.close()
     return 0
 

@@ -42,7 +42,7 @@ class CalibrationConfig:
     """Observations per forward pass."""
     pred_baseline: Literal["none", "episode"] = "episode"
     """episode: U_pred above the episode's smallest so far (AURD then measures it the same way); without it
-    AURD replanned after every action in unseen environments (docs/experiments.md#prediction-error-above-the-episode-floor)."""
+    AURD replanned after every action in unseen environments (docs/experiments.md#prediction-error-above-the-episode-floor)."""  # noqa: E501 - tyro --help keeps its line breaks
 
 
 def _obs_at(ep: Episode, t: int) -> dict:

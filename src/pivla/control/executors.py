@@ -199,13 +199,15 @@ class BaseExecutor:
         self._pred_min = raw if self._pred_min is None else min(self._pred_min, raw)
         return u
 
-    def _monitored(self, policy: ChunkPolicy, obs: dict, predicted: np.ndarray | None, u_act: float) -> dict[str, float]:
+    def _monitored(self, policy: ChunkPolicy, obs: dict, predicted: np.ndarray | None,
+                   u_act: float) -> dict[str, float]:
         """U_pred and U of this step exactly as AURD would form them (``predicted``: the latent the current
         plan predicted for ``obs``, None on a step that queried the policy), for a baseline's trace."""
         if not self.monitor:
             return {}
         with self._monitoring():
-            u_pred = 0.0 if predicted is None else self._u_pred(policy.encode(obs), predicted, self._pred_baseline(policy))
+            u_pred = (0.0 if predicted is None
+                      else self._u_pred(policy.encode(obs), predicted, self._pred_baseline(policy)))
             eta = self._eta(policy)
         return {"u_pred": u_pred, "u": combine_uncertainty(float(u_act), u_pred, eta)}
 
@@ -423,8 +425,9 @@ class AURDExecutor(BaseExecutor):
             if event is not None and self._pauses < self.cfg.max_pauses:
                 self._pauses += 1
                 self._end_plan(0, "pause")
-                return self._emit(self.hold_action(policy.spec.action_space), plan_step=0, replanned=replanned, u_act=p.u_act[0],
-                                  u_pred=u_pred, u=u, v=v, event="pause", ended=ended, committed=False, **cut)
+                return self._emit(self.hold_action(policy.spec.action_space), plan_step=0, replanned=replanned,
+                                  u_act=p.u_act[0], u_pred=u_pred, u=u, v=v, event="pause", ended=ended,
+                                  committed=False, **cut)
             self._pauses = 0
             self._k += 1
             return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], u_pred=u_pred,

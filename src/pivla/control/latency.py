@@ -86,7 +86,8 @@ def control_hz(env: Any) -> float:
     unwrapped = getattr(env, "unwrapped", env)
     hz = getattr(unwrapped, "control_hz", None) or getattr(unwrapped, "metadata", {}).get("render_fps")
     if not hz:
-        raise ValueError(f"{type(unwrapped).__name__} does not say its control rate (control_hz or metadata['render_fps'])")
+        raise ValueError(f"{type(unwrapped).__name__} does not say its control rate "
+                         f"(control_hz or metadata['render_fps'])")
     return float(hz)
 
 

@@ -25,7 +25,8 @@ def action_uncertainty(continuous: np.ndarray, dequantized: np.ndarray) -> np.nd
     return np.abs(np.asarray(continuous, np.float64) - np.asarray(dequantized, np.float64)).mean(-1)
 
 
-def prediction_uncertainty(observed_latent: np.ndarray | None, predicted_latent: np.ndarray | None) -> np.ndarray | float:
+def prediction_uncertainty(observed_latent: np.ndarray | None,
+                           predicted_latent: np.ndarray | None) -> np.ndarray | float:
     """U_pred = || Enc(o_{t+k}) - z_hat_{t+k} ||_2; 0 when no observation is available yet."""
     if observed_latent is None or predicted_latent is None:
         return 0.0
@@ -111,7 +112,8 @@ def temporal_ensemble(predictions: np.ndarray, m: float = 0.01) -> np.ndarray:
     return (ensemble_weights(len(predictions), m)[:, None] * predictions).sum(0)
 
 
-def adahorizon(mad: np.ndarray, min_exec: int = 4, extend_below: float = 0.03, replan_above: float = 0.06) -> tuple[int, str]:
+def adahorizon(mad: np.ndarray, min_exec: int = 4, extend_below: float = 0.03,
+               replan_above: float = 0.06) -> tuple[int, str]:
     """EverydayVLA's AdaHorizon on MAD_k = mean_d |A_c[k] - a_bar[k]|.
 
     Execute at least ``min_exec`` actions, but if any MAD among them exceeds ``replan_above`` replan at

@@ -64,7 +64,8 @@ class EpisodeResult:
         return {
             "success": self.success, "steps": self.steps, "executor": self.executor, "seed": self.seed,
             "stage_progress": self.stage_progress,
-            "plans": len(self.plans), "queries": self.queries, "replans": ev["replan"], "prunes": ev["prune"], "pauses": ev["pause"],
+            "plans": len(self.plans), "queries": self.queries,
+            "replans": ev["replan"], "prunes": ev["prune"], "pauses": ev["pause"],
             "mean_executed_horizon": float(np.mean(horizons)) if horizons else 0.0,
             # mean, not median: chunking executors query the policy on a few steps only
             "control_ms_mean": float(np.mean(self.step_times) * 1e3) if self.step_times else 0.0,

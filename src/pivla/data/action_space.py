@@ -13,11 +13,11 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 
-class ActionKind(str, Enum):
+class ActionKind(StrEnum):
     """How an action row moves the robot."""
 
     EE_DELTA = "ee_delta"  # end-effector position and orientation deltas per step, then the gripper command

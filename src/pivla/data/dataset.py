@@ -73,7 +73,8 @@ def fit_norm_stats(episodes: list[Episode], cfg: ModelConfig, space: ActionSpace
     actions = np.concatenate([ep.actions for ep in episodes])
     proprio = np.concatenate([proprio_vector(ep.obs, cfg.proprio_keys) for ep in episodes])
     if proprio.shape[-1] != cfg.proprio_dim:
-        raise DatasetError(f"proprio keys {cfg.proprio_keys} give {proprio.shape[-1]} dims, config says {cfg.proprio_dim}")
+        raise DatasetError(f"proprio keys {cfg.proprio_keys} give {proprio.shape[-1]} dims, "
+                           f"config says {cfg.proprio_dim}")
     layout = [(k, int(np.asarray(episodes[0].obs[k]).shape[-1])) for k in cfg.proprio_keys]
     return NormStats(action=ActionStats.fit(actions, space), proprio=StandardStats.fit(proprio), proprio_layout=layout,
                      action_space=space)

@@ -209,7 +209,9 @@ def _demos(path: Path, f: h5py.File, obs_keys: tuple[str, ...] | None) -> Iterat
                 meta=json.loads(g.attrs["meta"]) if "meta" in g.attrs else {},
             )
         except DatasetError as e:
-            raise DatasetError(f"{path}: data/{name}: {e}") if not str(e).startswith(str(path)) else e
+            if str(e).startswith(str(path)):
+                raise e
+            raise DatasetError(f"{path}: data/{name}: {e}") from e
         except _H5_DAMAGE as e:
             raise DatasetError(f"{path}: data/{name} is truncated or corrupt ({e})") from e
         if ep.actions.shape[1] != space.dim:

@@ -15,7 +15,8 @@ from pivla.data.format import Episode, write_episodes
 GOALS = {"left": (-1.0, 0.0), "right": (1.0, 0.0), "up": (0.0, -1.0), "down": (0.0, 1.0)}
 
 
-def synthetic_episode(rng: np.random.Generator, goal: str, T: int = 20, size: int = 32, success: bool = True) -> Episode:
+def synthetic_episode(rng: np.random.Generator, goal: str, T: int = 20, size: int = 32,
+                      success: bool = True) -> Episode:
     pos = rng.uniform(0.3, 0.7, size=2)
     direction = np.asarray(GOALS[goal])
     frames, wrist, actions, ee = [], [], [], []

@@ -27,7 +27,7 @@ class WordTokenizer:
     max_len: int = 16
 
     @classmethod
-    def build(cls, instructions: list[str], max_len: int = 16) -> "WordTokenizer":
+    def build(cls, instructions: list[str], max_len: int = 16) -> WordTokenizer:
         seen = sorted({w for text in instructions for w in words(text)})
         return cls(vocab=[PAD, UNK, *seen], max_len=max_len)
 
@@ -47,7 +47,7 @@ class WordTokenizer:
         return {"vocab": self.vocab, "max_len": self.max_len}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "WordTokenizer":
+    def from_dict(cls, d: dict) -> WordTokenizer:
         return cls(vocab=list(d["vocab"]), max_len=int(d["max_len"]))
 
 

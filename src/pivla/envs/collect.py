@@ -94,7 +94,8 @@ def collect_demos(cfg: CollectConfig) -> int:
     if cfg.episodes < 1:
         raise ValueError("episodes must be >= 1")
     if cfg.libero_step_factor < 1.0:
-        raise ValueError(f"libero_step_factor must be >= 1 (the evaluation limit at least), got {cfg.libero_step_factor}")
+        raise ValueError(f"libero_step_factor must be >= 1 (the evaluation limit at least), "
+                         f"got {cfg.libero_step_factor}")
     check_backend(cfg.dispatch)
     if cfg.env == "libero":
         return _collect_libero(cfg)

@@ -4,9 +4,10 @@ Table 4 (action heads): full, discrete-only, continuous-only. Table 5 (loss term
 w/o L_RL, IL only. Table 6 (execution): the full model with AURD, AURD in the paper's literal check order,
 fixed horizon, ACT temporal ensembling and AdaHorizon. Table 7 (components added one at a time): a
 continuous head trained by imitation alone and run at a fixed horizon (the OpenVLA-OFT row), + the discrete
-head (IL only), + the unified loss (the full model), + AURD; each row against the one above it. Every variant goes through the demo's recipe
-(:mod:`pivla.evaluation.protocol`) with the same data, seed and steps: trained, run on the same validation
-seeds, calibrated on its own successful validation rollouts, and evaluated on the same test seeds.
+head (IL only), + the unified loss (the full model), + AURD; each row against the one above it. Every variant
+goes through the demo's recipe (:mod:`pivla.evaluation.protocol`) with the same data, seed and steps: trained,
+run on the same validation seeds, calibrated on its own successful validation rollouts, and evaluated on the
+same test seeds.
 """
 
 from __future__ import annotations
@@ -154,7 +155,8 @@ def run_ablation(cfg: AblationConfig) -> str:
     wanted = set(cfg.variants or (*TRAIN_VARIANTS, *EXEC_VARIANTS))
     unknown = wanted - set(TRAIN_VARIANTS) - set(EXEC_VARIANTS)
     if unknown:
-        raise ValueError(f"unknown ablation variants {sorted(unknown)}; known: {sorted({*TRAIN_VARIANTS, *EXEC_VARIANTS})}")
+        raise ValueError(f"unknown ablation variants {sorted(unknown)}; "
+                         f"known: {sorted({*TRAIN_VARIANTS, *EXEC_VARIANTS})}")
     check_target_divides(cfg.train.model)
     models: dict[str, tuple[dict, dict]] = {}  # variant -> (AURD, fixed H=5) results
     for name, (_, overrides) in TRAIN_VARIANTS.items():
@@ -171,10 +173,12 @@ def run_ablation(cfg: AblationConfig) -> str:
             log.info("[ablate] full model with %s", name)
             execs[name] = _evaluate(cfg, full_run, f"exec_{name}", executor)
     lines = [f"# Ablations ({cfg.env}/{cfg.suite}, {cfg.episodes} episodes per task, perturb={cfg.perturb}, "
-             f"{cfg.train.steps} training steps of {cfg.train.batch_size}, training seed {cfg.train_seed}, test seed {cfg.seed})",
+             f"{cfg.train.steps} training steps of {cfg.train.batch_size}, training seed {cfg.train_seed}, "
+             f"test seed {cfg.seed})",
              "", "Success with 95% Wilson intervals; differences in points, paired over the same test episodes "
              "(Newcombe's method 10 95% interval, exact McNemar p).", ""]
-    model_header = ["| variant | AURD | fixed H=5 | AURD - full | episodes | AURD mean horizon |", "|---|---|---|---|---|---|"]
+    model_header = ["| variant | AURD | fixed H=5 | AURD - full | episodes | AURD mean horizon |",
+                    "|---|---|---|---|---|---|"]
     ref = models.get("full", (None, None))[0]
     for title, keys in [("Table 4: action heads", ["full", "discrete_only", "continuous_only"]),
                         ("Table 5: loss terms", ["full", "no_sp", "no_rl", "il_only"])]:

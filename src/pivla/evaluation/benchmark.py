@@ -415,13 +415,14 @@ class Benchmark:
         plan += [("others", Cell(f"long_{top}", "displace_object", f"displace_object={max(cfg.levels)}", suite="long"),
                   e, executor_config(e)) for e in EXECUTORS]
         # Tables 4-7 on the hardest condition; the main policy is the full model of the ablations
-        plan += [(p, self.cells[hardest], e, executor_config(e)) for p in ["main", *(n for n in self.specs if n.startswith("abl_"))]
-                 for e in ("aurd", "fixed")]
+        plan += [(p, self.cells[hardest], e, executor_config(e))
+                 for p in ["main", *(n for n in self.specs if n.startswith("abl_"))] for e in ("aurd", "fixed")]
         plan += [("main", self.cells[hardest], label, executor_config(name, **opts))
                  for label, (name, opts) in EXEC_VARIANTS.items()]
         plan += [(f"demos_{n}", self.cells[c], e, executor_config(e)) for n in cfg.demo_counts
                  for c in ("in_distribution", hardest) for e in ("aurd", "fixed")]
-        plan += [("main", self.cells[c], e, executor_config(e)) for c in ("in_distribution", hardest) for e in ("aurd", "fixed")]
+        plan += [("main", self.cells[c], e, executor_config(e))
+                 for c in ("in_distribution", hardest) for e in ("aurd", "fixed")]
         unique = {(p, c.name, label): (p, c, label, e) for p, c, label, e in plan}  # tables share evaluations
         return list(unique.values())
 
@@ -429,7 +430,8 @@ class Benchmark:
         """The test plan's evaluations of these policies (test_plan.json lists the whole plan)."""
         plan = self.test_plan(hardest)
         atomic_write_json(self.out / "test_plan.json", [
-            {"policy": p, "cell": dataclasses.asdict(c), "label": lb, "executor": config_to_dict(e)} for p, c, lb, e in plan])
+            {"policy": p, "cell": dataclasses.asdict(c), "label": lb, "executor": config_to_dict(e)}
+            for p, c, lb, e in plan])
         wanted = set(policies)
         for seed in range(self.cfg.seeds):
             for policy, cell, label, executor in plan:
@@ -476,7 +478,8 @@ class Results:
         share seed codes pair too (a displacement level against level 0, servo against ideal actuation)."""
         if not (self.has(*a, split=split) and self.has(*b, split=split)):
             return None
-        pairs = [paired_successes(ra, rb) for (_, ra), (_, rb) in zip(self.rows(*a, split=split), self.rows(*b, split=split))]
+        pairs = [paired_successes(ra, rb)
+                 for (_, ra), (_, rb) in zip(self.rows(*a, split=split), self.rows(*b, split=split))]
         return compare(np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs]))
 
     def departures(self, policy: str, cell: str) -> dict[str, dict] | None:
@@ -540,7 +543,8 @@ def write_benchmark_report(out: str | Path) -> Path:
           ("Success in % with Wilson 95% intervals, pooled over training seeds; differences in points, paired episode "
            "by episode within each seed (Newcombe's method 10 95% interval, exact McNemar p). Test seeds only; every "
            "decision was taken on validation seeds (decisions.json)."), "",
-          f"Headline policy: `{headline}`; hardest condition (lowest mean baseline success on validation): `{hardest}`.", ""]
+          f"Headline policy: `{headline}`; hardest condition (lowest mean baseline success on validation): "
+          f"`{hardest}`.", ""]
 
     def table(key: str, title: str, header: list[str], rows: list[list[str]], records: list[dict]) -> None:
         data["tables"][key] = records
@@ -571,7 +575,8 @@ def write_benchmark_report(out: str | Path) -> Path:
     grid = {e: res.task_rates(headline, "in_distribution", e) for e in EXECUTORS}
     tasks = sorted({t for g in grid.values() for t in g})
     table("table2", "Table 2: object x direction, in distribution", ["task", *EXECUTORS],
-          [[t, *(_pct(grid[e].get(t)) for e in EXECUTORS)] for t in tasks], [{"task": t, **{e: grid[e].get(t) for e in EXECUTORS}} for t in tasks])
+          [[t, *(_pct(grid[e].get(t)) for e in EXECUTORS)] for t in tasks],
+          [{"task": t, **{e: grid[e].get(t) for e in EXECUTORS}} for t in tasks])
     rows, recs = executor_rows("table3", headline, ["static_distractors", "dynamic_distractors", "unseen_env"])
     r2, c2 = executor_rows("table3", "seen", ["unseen_tasks"])
     table("table3", "Table 3: generalisation (unseen tasks: trained on pick_place_seen)", header, r2 + rows, c2 + recs)
@@ -695,12 +700,14 @@ def _failure_round(res: Results, hardest: str, top: int, table: Callable, versus
             signals = {}
             for p in ("main", "round2"):
                 fps = [r.get("failure_prediction", {}) for r in res.results(p, cell, e)]
-                signals[p] = {k: _mean([f.get(k) for f in fps]) for k in
-                              ("auroc_neg_v_min", "auroc_u_max", "v_failure_lead_steps_mean", "failure_lead_steps_mean")}
+                signals[p] = {k: _mean([f.get(k) for f in fps])
+                              for k in ("auroc_neg_v_min", "auroc_u_max", "v_failure_lead_steps_mean",
+                                        "failure_lead_steps_mean")}
             rows.append([cell, e, _pct(before), _pct(after), _diff(d),
                          *(f"{_fmt(signals['main'][k])} -> {_fmt(signals['round2'][k])}"
                            for k in ("auroc_neg_v_min", "v_failure_lead_steps_mean", "auroc_u_max"))])
-            recs.append({"cell": cell, "executor": e, "before": before, "after": after, "difference": d, "signals": signals})
+            recs.append({"cell": cell, "executor": e, "before": before, "after": after, "difference": d,
+                         "signals": signals})
     table("failure_round", "Failure round: trained again with the policy's own rollouts (before -> after)",
           ["condition", "executor", "before", "after", "after - before", "V AUROC", "V lead (steps)", "U AUROC"],
           rows, recs)
@@ -736,8 +743,8 @@ def _demo_counts(res: Results, cfg: BenchmarkConfig, hardest: str, table: Callab
             pts = [{"demos": n, "success": res.rate(p, cell, e)} for n, p in sorted(policies_by_n.items())]
             out[f"{cell}/{e}"] = pts
             rows += [[cell, e, str(p["demos"]), _pct(p["success"])] for p in pts]
-    table("demo_counts", "Fig. 17: success against demonstrations per task", ["condition", "executor", "demos", "success"],
-          rows, [out])
+    table("demo_counts", "Fig. 17: success against demonstrations per task",
+          ["condition", "executor", "demos", "success"], rows, [out])
     return out
 
 

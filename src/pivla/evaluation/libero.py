@@ -161,7 +161,7 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
                             executor=executor_config(name, **options), episodes=cfg.init_states, first_init_state=0,
                             seed=cfg.seed + 1000, workers=cfg.workers, videos=2, max_steps=cfg.max_steps,
                             libero_mesh_faces=cfg.mesh_faces, dispatch=cfg.dispatch)
-            timed(f"eval_{name}", lambda: evaluate(ec))
+            timed(f"eval_{name}", lambda ec=ec: evaluate(ec))
     return write_libero_report(out, cfg.suite, timings.times)
 
 
@@ -204,7 +204,8 @@ def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None 
     rows = {name: load_rows(d / "episodes.jsonl") for name, d in evals.items()}
     demos = demonstrations(out / "data")
     timings = timings or {}
-    report: dict = {"suite": suite, "executors": {}, "paired": {}, "published": {k: v.get(suite) for k, v in PUBLISHED.items()},
+    report: dict = {"suite": suite, "executors": {}, "paired": {},
+                    "published": {k: v.get(suite) for k, v in PUBLISHED.items()},
                     "demonstrations": demos, "timings_s": timings}
     for name, res in results.items():
         report["executors"][name] = {
@@ -229,7 +230,8 @@ def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None 
         cells = []
         for n in names:
             pt = results[n]["per_task"].get(t)
-            cells.append(f"{100 * pt['success_rate']:.0f}% ({round(pt['success_rate'] * pt['episodes'])}/{pt['episodes']})"
+            cells.append(f"{100 * pt['success_rate']:.0f}% "
+                         f"({round(pt['success_rate'] * pt['episodes'])}/{pt['episodes']})"
                          if pt else "-")
         d = demos.get(t)
         kept = f"{d['episodes']} / {d['attempts']}" if d else "-"

@@ -165,7 +165,8 @@ def write_report(root: str | Path) -> Path:
         cells = []
         for e in executors:
             r = results.get((c, e))
-            cells.append(f"{100 * r['success_rate']:.1f}% [{100 * r['ci95'][0]:.0f}, {100 * r['ci95'][1]:.0f}] (n={r['episodes']})"
+            cells.append(f"{100 * r['success_rate']:.1f}% [{100 * r['ci95'][0]:.0f}, {100 * r['ci95'][1]:.0f}] "
+                         f"(n={r['episodes']})"
                          if r else "-")
         lines.append(f"| {c} | " + " | ".join(cells) + " |")
     lines += ["", "## Each executor against AURD, episode by episode", "",
@@ -182,11 +183,12 @@ def write_report(root: str | Path) -> Path:
             lines.append(f"| {c} | {e} | {cmp['successes_a']}/{cmp['n']} | {cmp['successes_b']}/{cmp['n']} | "
                          f"{cmp['only_a']} | {cmp['only_b']} | {format_difference(cmp, with_p=False)} | "
                          f"{cmp['p_mcnemar']:.3g} |")
-    lines += ["", "## Execution statistics", "", "| condition | executor | mean horizon | replans | prunes | pauses | plans | control Hz |",
+    lines += ["", "## Execution statistics", "",
+              "| condition | executor | mean horizon | replans | prunes | pauses | plans | control Hz |",
               "|---|---|---|---|---|---|---|---|"]
     for (c, e), r in sorted(results.items()):
-        lines.append(f"| {c} | {e} | {r['mean_executed_horizon']:.2f} | {r['replans']} | {r['prunes']} | {r['pauses']} | "
-                     f"{r['plans']} | {r['control_hz']:.0f} |")
+        lines.append(f"| {c} | {e} | {r['mean_executed_horizon']:.2f} | {r['replans']} | {r['prunes']} | "
+                     f"{r['pauses']} | {r['plans']} | {r['control_hz']:.0f} |")
     timed = {k: r for k, r in sorted(results.items()) if "idle_steps" in r}
     if timed:
         lines += ["", "## Latency and execution", "",
@@ -199,22 +201,28 @@ def write_report(root: str | Path) -> Path:
         for (c, e), r in timed.items():
             lines.append(f"| {c} | {e} | {_execution(r.get('execution'))} | {r.get('latency_ms', '0')} | "
                          f"{100 * r['success_rate']:.1f}% | {fmt(r['steps_to_success_mean'], 1)} | "
-                         f"{100 * r['idle_fraction']:.1f}% | {fmt(r['queries_per_minute'], 1)} | {fmt(r['seam_jerk'], 3)} | "
+                         f"{100 * r['idle_fraction']:.1f}% | {fmt(r['queries_per_minute'], 1)} | "
+                         f"{fmt(r['seam_jerk'], 3)} | "
                          f"{r['stale_chunks']} | {r['out_of_order_chunks']} | {r['failed_queries']} |")
     lines += ["", "## Failure prediction (AUROC of the episode's signals for predicting failure)", "",
-              "| condition | executor | AUROC max U | AUROC mean U | AUROC -min V | failures | flagged (U > tau_high) | mean lead (steps) |",
+              "| condition | executor | AUROC max U | AUROC mean U | AUROC -min V | failures | flagged (U > tau_high) "
+              "| mean lead (steps) |",
               "|---|---|---|---|---|---|---|---|"]
     for (c, e), r in sorted(results.items()):
         fp = r.get("failure_prediction", {})
-        lines.append(f"| {c} | {e} | {fmt(fp.get('auroc_u_max'))} | {fmt(fp.get('auroc_u_mean'))} | {fmt(fp.get('auroc_neg_v_min'))} | "
-                     f"{fp.get('failures', '-')} | {fp.get('failure_flagged', '-')} | {fmt(fp.get('failure_lead_steps_mean'))} |")
+        lines.append(f"| {c} | {e} | {fmt(fp.get('auroc_u_max'))} | {fmt(fp.get('auroc_u_mean'))} | "
+                     f"{fmt(fp.get('auroc_neg_v_min'))} | "
+                     f"{fp.get('failures', '-')} | {fp.get('failure_flagged', '-')} | "
+                     f"{fmt(fp.get('failure_lead_steps_mean'))} |")
     # figures
     main_cond = "in_distribution" if "in_distribution" in conditions else (conditions[0] if conditions else None)
     if main_cond:
-        rows_by_exec = {e: load_rows(evals[(main_cond, e)] / "episodes.jsonl") for e in executors if (main_cond, e) in evals}
+        rows_by_exec = {e: load_rows(evals[(main_cond, e)] / "episodes.jsonl")
+                        for e in executors if (main_cond, e) in evals}
         plot_horizons(rows_by_exec, figs / "executed_horizons.png")
         lines += ["", f"## Executed horizons ({main_cond}, paper Fig. 14)", "", "![](figures/executed_horizons.png)"]
-        aurd_rows = [r for c in conditions if (c, "aurd") in evals for r in load_rows(evals[(c, "aurd")] / "episodes.jsonl")]
+        aurd_rows = [r for c in conditions if (c, "aurd") in evals
+                     for r in load_rows(evals[(c, "aurd")] / "episodes.jsonl")]
         if aurd_rows:
             plot_u_by_step(aurd_rows, figs / "uncertainty_by_step.png")
             lines += ["", "## Uncertainty against horizon step (AURD, all conditions, paper Fig. 13)", "",

@@ -187,8 +187,8 @@ def _run_job(job: tuple[int, str, int, bool]) -> dict:
                          max_steps=cfg.max_steps, keep_episode=keep_frames or cfg.record is not None,
                          reset_options=options, execution=cfg.execution, latency=cfg.latency_ms)
     row = {"task": task_name, "task_index": task_index, "episode": episode, **(options or {}), **result.summary(),
-           "wall_s": time.perf_counter() - t0, "encoder_runtime": getattr(policy, "encoder_runtime", "client"), "trace": result.trace,
-           "plan_events": result.plans}
+           "wall_s": time.perf_counter() - t0, "encoder_runtime": getattr(policy, "encoder_runtime", "client"),
+           "trace": result.trace, "plan_events": result.plans}
     perturber = getattr(_env(task_index), "perturber", None)
     if perturber is not None:  # twin: the mid-episode events that fired (displacement, push), with their steps
         row["perturb_events"] = [{k: _plain(v) for k, v in ev.items()} for ev in perturber.events]
@@ -246,10 +246,11 @@ def failure_prediction(rows: list[dict], tau_high: float | None, v_thresh: float
     u_max = np.array([episode_uncertainty(r["trace"]).max(initial=0.0) for r in rows])
     u_mean = np.array([episode_uncertainty(r["trace"]).mean() if r["trace"] else 0.0 for r in rows])
     v_min = np.array([min((row["v"] for row in acting_rows(r["trace"])), default=0.0) for r in rows])
-    out = {"auroc_u_max": auroc(u_max, failed), "auroc_u_mean": auroc(u_mean, failed), "auroc_neg_v_min": auroc(-v_min, failed),
-           "failures": int(failed.sum())}
+    out = {"auroc_u_max": auroc(u_max, failed), "auroc_u_mean": auroc(u_mean, failed),
+           "auroc_neg_v_min": auroc(-v_min, failed), "failures": int(failed.sum())}
     signals = (("failure", tau_high, lambda r: episode_uncertainty(r["trace"]) > tau_high),
-               ("v_failure", v_thresh, lambda r: np.array([row["v"] for row in acting_rows(r["trace"])], float) < v_thresh))
+               ("v_failure", v_thresh,
+                lambda r: np.array([row["v"] for row in acting_rows(r["trace"])], float) < v_thresh))
     for prefix, threshold, flagged in signals:
         if threshold is not None:
             leads, false_alarms = _leads(rows, flagged)
@@ -265,7 +266,8 @@ def aggregate(rows: list[dict], cfg: EvalConfig, tau_high: float | None, v_thres
     per_task: dict[str, dict] = {}
     for r in rows:
         per_task.setdefault(r["task"], []).append(r["success"])  # type: ignore[arg-type]
-    per_task = {k: {"success_rate": float(np.mean(v)), "ci95": list(wilson_interval(int(np.sum(v)), len(v))), "episodes": len(v)}
+    per_task = {k: {"success_rate": float(np.mean(v)), "ci95": list(wilson_interval(int(np.sum(v)), len(v))),
+                    "episodes": len(v)}
                 for k, v in sorted(per_task.items())}
     plans = [(h, e) for r in rows for h, e in r["plan_events"]]
     horizons = [h for h, e in plans if e != "pause"]
@@ -482,7 +484,8 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
                     consume(row)
     bar.close()
     rows = sorted(done.values(), key=_key)
-    results = aggregate(rows, cfg, tau_high, thresholds["v_thresh"] if thresholds else None) | {"gripper_head": gripper_head, "thresholds": thresholds}
+    results = (aggregate(rows, cfg, tau_high, thresholds["v_thresh"] if thresholds else None)
+               | {"gripper_head": gripper_head, "thresholds": thresholds})
     atomic_write_json(out / "results.json", results)
     if cfg.record:  # after results.json: a missing recording must not cost the evaluation its results
         _merge_rollouts(Path(cfg.record), rows)

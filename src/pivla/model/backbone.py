@@ -53,7 +53,7 @@ class ConvEncoder(nn.Module):
             grid = (grid + 1) // 2
         return grid
 
-    def truncate(self, stages: int) -> "ConvEncoder":
+    def truncate(self, stages: int) -> ConvEncoder:
         """Keep only the first ``stages`` stages (in place): a target encoder that reads an earlier stage."""
         if not 1 <= stages <= len(self.res):
             raise ValueError(f"a CNN of {len(self.res)} stages cannot keep {stages}")

@@ -151,8 +151,8 @@ class TargetEncoder(nn.Module):
         if self.proprio == 0:
             return z
         if proprio is None or proprio.shape[:-1] != z.shape[:-1]:
-            raise ValueError(f"this target latent reads the proprio too: give (..., P) for images {tuple(images.shape)}, "
-                             f"got {None if proprio is None else tuple(proprio.shape)}")
+            raise ValueError(f"this target latent reads the proprio too: give (..., P) for images "
+                             f"{tuple(images.shape)}, got {None if proprio is None else tuple(proprio.shape)}")
         return torch.cat([z, proprio_latent(proprio.float(), self.proprio)], dim=-1)
 
     @torch.no_grad()

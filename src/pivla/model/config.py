@@ -75,7 +75,7 @@ class TargetEncoderConfig:
     about 1/factor**2 of the policy's vision pass, which is AURD's per-step overhead."""
     pool_grid: int = 1
     """ema/frozen: average the last feature map over a pool_grid x pool_grid partition instead of the whole
-    picture (1), so that the latent keeps where things are (docs/experiments.md#aurd-does-not-see-a-displaced-object)."""
+    picture (1), so that the latent keeps where things are (docs/experiments.md#aurd-does-not-see-a-displaced-object)."""  # noqa: E501 - tyro --help keeps its line breaks
     stages: int = 0
     """ema/frozen: the latent pools the output of the CNN's first stages (0: all). An earlier stage has a
     fraction of the weights, which AURD's encoding fetches into a cache the simulator has just used."""

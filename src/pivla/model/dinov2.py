@@ -44,7 +44,7 @@ class Dinov2Encoder(nn.Module):
         self.spec = spec
         self.hidden = int(self.model.config.hidden_size)
 
-    def train(self, mode: bool = True) -> "Dinov2Encoder":
+    def train(self, mode: bool = True) -> Dinov2Encoder:
         """Always in eval mode: it is a fixed target (no dropout, ever)."""
         return super().train(False)
 

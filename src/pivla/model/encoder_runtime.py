@@ -74,7 +74,8 @@ class TargetLatents(torch.nn.Module):
     cameras, area-averaged (``pivla.data.transforms.area_downsample``) and centred
     (``pivla.model.backbone.centre``) in NumPy before the graph, with the final 1 / sqrt(d_z) as the layer
     norm's scale. The graph then starts at the first convolution and ends at the layer norm (33 nodes instead
-    of 36; in the twin's loop a graph like it encoded 0.01-0.07 ms faster, docs/experiments.md#the-encoding-path-in-the-control-loop).
+    of 36; in the twin's loop a graph like it encoded 0.01-0.07 ms faster,
+    docs/experiments.md#the-encoding-path-in-the-control-loop).
     ``onnx_target_encoder`` checks the graph against this module; the tests check the whole ONNX path against
     the PyTorch ``TargetEncoder``."""
 

@@ -89,7 +89,8 @@ class ObservationEncoder:
         images = self.graph.inputs[0]
         for camera, dst in zip(self.cameras, images):
             if camera not in obs:
-                raise ValueError(f"observation is missing camera {camera!r} (the target encoder reads {list(self.cameras)})")
+                raise ValueError(f"observation is missing camera {camera!r} "
+                                 f"(the target encoder reads {list(self.cameras)})")
             area_downsample(resize_images(check_image(obs[camera], camera), self.image_size), self.downsample, out=dst)
         centre(images, inplace=True)
         return self.graph.run()[0]

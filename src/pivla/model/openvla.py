@@ -25,10 +25,10 @@ import json
 import os
 import shutil
 from collections import Counter
+from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -97,7 +97,7 @@ class OpenVLAModel(nn.Module):
         self.image_sizes = list(meta["image_sizes"])
 
     @classmethod
-    def from_pretrained(cls, path: str | os.PathLike, dtype: torch.dtype) -> "OpenVLAModel":
+    def from_pretrained(cls, path: str | os.PathLike, dtype: torch.dtype) -> OpenVLAModel:
         from transformers import Dinov2WithRegistersModel, LlamaForCausalLM, SiglipVisionModel
 
         path = Path(path)
@@ -176,7 +176,7 @@ def _qkv(block: str, names: tuple[str, str, str]) -> list[_Rule]:
     return [_Rule((f"{block}attn.qkv.{s}",), tuple(f"{n}.{s}" for n in names), _split_qkv) for s in WB]
 
 
-def _dinov2_rules(source: "_Source", depth: int) -> list[_Rule]:
+def _dinov2_rules(source: _Source, depth: int) -> list[_Rule]:
     """timm ``vit_*_reg4_dinov2`` -> transformers ``Dinov2WithRegistersModel`` (checkpoint names)."""
     p = DINO
     rules = [

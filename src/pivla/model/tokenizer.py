@@ -46,7 +46,8 @@ def dequantize(probs, centers):
     torch = _torch_of(probs)
     if torch is not None:
         return probs @ torch.as_tensor(centers, dtype=probs.dtype, device=probs.device)
-    return np.asarray(probs) @ np.asarray(centers, dtype=np.float64 if np.asarray(probs).dtype == np.float64 else np.float32)
+    return np.asarray(probs) @ np.asarray(centers,
+                                          dtype=np.float64 if np.asarray(probs).dtype == np.float64 else np.float32)
 
 
 @dataclass(frozen=True)

@@ -152,7 +152,8 @@ def calibrate_table(image: np.ndarray, K: np.ndarray) -> TableCalibration:
     gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(ARUCO_DICT), cv2.aruco.DetectorParameters())
     corners, ids, _ = detector.detectMarkers(gray)
-    found = [] if ids is None else [(int(i), c.reshape(4, 2)) for i, c in zip(ids.ravel(), corners) if int(i) in MARKER_CENTRES]
+    found = [] if ids is None else [(int(i), c.reshape(4, 2)) for i, c in zip(ids.ravel(), corners)
+                                    if int(i) in MARKER_CENTRES]
     if len(found) < 2:
         raise RuntimeError(f"table calibration needs >= 2 of the ArUco markers {sorted(MARKER_CENTRES)}, "
                            f"saw {[i for i, _ in found]}")
@@ -259,7 +260,8 @@ class Collector:
         self.K = K
         self.gain = gain
         lo, hi = env.robot.safety.config.workspace_min, env.robot.safety.config.workspace_max
-        self.workspace = (np.array([max(lo[0], 0.08), max(lo[1], -0.25)]), np.array([min(hi[0], 0.32), min(hi[1], 0.25)]))
+        self.workspace = (np.array([max(lo[0], 0.08), max(lo[1], -0.25)]),
+                          np.array([min(hi[0], 0.32), min(hi[1], 0.25)]))
         self.calibration: TableCalibration | None = None
 
     def look(self) -> list[Detection]:

@@ -144,7 +144,8 @@ class ArmCalibration:
         try:
             doc = json.loads(path.read_text())
         except FileNotFoundError as exc:
-            raise CalibrationError(f"calibration file not found: {path} (create one with `pivla robot calibrate`)") from exc
+            raise CalibrationError(f"calibration file not found: {path} "
+                                   f"(create one with `pivla robot calibrate`)") from exc
         except json.JSONDecodeError as exc:
             raise CalibrationError(f"{path} is not valid JSON: {exc}") from exc
         if not isinstance(doc, dict) or doc.get("version") != CALIBRATION_VERSION:

@@ -10,8 +10,9 @@ task success, so ``info["success"]`` comes from an optional ``success_fn(obs)`` 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np

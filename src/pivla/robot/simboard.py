@@ -113,8 +113,10 @@ class SimBoard:
                     self.pulses = widths
                     self.sim_time_us = t_us
                     self.history.append((t_us, widths))
-                    self.min_seen = list(widths) if self.min_seen is None else [min(a, b) for a, b in zip(self.min_seen, widths)]
-                    self.max_seen = list(widths) if self.max_seen is None else [max(a, b) for a, b in zip(self.max_seen, widths)]
+                    self.min_seen = (list(widths) if self.min_seen is None
+                                     else [min(a, b) for a, b in zip(self.min_seen, widths)])
+                    self.max_seen = (list(widths) if self.max_seen is None
+                                     else [max(a, b) for a, b in zip(self.max_seen, widths)])
                     self._cond.notify_all()
             elif parts[0] == "X":
                 with self._cond:

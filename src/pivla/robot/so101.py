@@ -369,7 +369,8 @@ def check(bus: F.BusConfig, calibration: SO101Calibration | None = None) -> list
         with F.FeetechBus(bus, dict(zip(MOTOR_IDS.values(), MOTORS))) as handle:
             models = {sid: handle.ping(sid) for sid in MOTOR_IDS.values()}
             ticks = handle.sync_read(F.PRESENT_POSITION, MOTOR_IDS.values())
-        return [{"motor": name, "id": sid, "model": models[sid], "ticks": ticks[sid]} for name, sid in MOTOR_IDS.items()]
+        return [{"motor": name, "id": sid, "model": models[sid], "ticks": ticks[sid]}
+                for name, sid in MOTOR_IDS.items()]
     with SO101.open(bus, calibration, SO101Config(watchdog_s=0.0)) as arm:
         ticks = arm.read_ticks()
     values = calibration.to_units(ticks)

@@ -3,8 +3,9 @@
 
 ``infer`` is one round trip; ``encode`` (AURD's per-step observed latent) runs here on ONNX Runtime with the
 server's target-encoder graph, fetched once (a reconnection checks that the server still has the same one),
-so an AURD control step crosses the network only when it replans. A dropped connection is reopened on the next call (the request is sent again: inference has
-no side effects) and must come back to the same policy; when it cannot, the call raises
+so an AURD control step crosses the network only when it replans. A dropped connection is reopened on the
+next call (the request is sent again: inference has no side effects) and must come back to the same policy;
+when it cannot, the call raises
 ``ConnectionError`` naming the server and the cause.
 
 No PyTorch and no MuJoCo here: NumPy, msgpack, websockets, OpenCV and ONNX Runtime.
@@ -44,7 +45,8 @@ class ServerRefused(ConnectionError):
 def _same_policy(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
     """Two metadata maps describe the same served policy (what the client relies on after a reconnect)."""
     keys = ("spec", "action_stats")
-    return all(a.get(k) == b.get(k) for k in keys) and a["target_encoder"].get("sha256") == b["target_encoder"].get("sha256")
+    return (all(a.get(k) == b.get(k) for k in keys)
+            and a["target_encoder"].get("sha256") == b["target_encoder"].get("sha256"))
 
 
 class RemotePolicy:
@@ -212,7 +214,8 @@ class RemotePolicy:
                     raise TimeoutError(f"pivla server at {self.url}: no reply within {self.timeout} s") from None
                 except (ConnectionClosed, OSError) as e:
                     self._drop()
-                    if isinstance(e, ConnectionClosed) and e.rcvd is not None and e.rcvd.code == CloseCode.MESSAGE_TOO_BIG:
+                    if (isinstance(e, ConnectionClosed) and e.rcvd is not None
+                            and e.rcvd.code == CloseCode.MESSAGE_TOO_BIG):
                         raise ValueError(f"request of {len(frame)} bytes is larger than the server accepts "
                                          f"({self.metadata['limits']['max_message_bytes']})") from None
                     failure = e

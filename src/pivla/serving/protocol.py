@@ -10,7 +10,8 @@ When the server has an API key, the opening request must carry ``Authorization: 
 
    ``protocol`` ("pivla-serving/1"), ``pivla_version``; ``spec``: ``PolicySpec.to_dict()`` (camera keys
    and image size, proprio keys with lengths, chunk K, horizon H, action dim and space, latent dim, target
-   cameras, whether the target latent reads the proprio); ``calibration``: AURD's thresholds (a dict, or None when the run was not calibrated);
+   cameras, whether the target latent reads the proprio); ``calibration``: AURD's thresholds (a dict, or None
+   when the run was not calibrated);
    ``action_stats``: the action normalization (q01, q99, gripper_dim) that ``to_actions`` needs;
    ``target_encoder``: how a client computes AURD's observed latent (below); ``limits``:
    max_message_bytes, max_image_side, max_batch, idle_timeout_s; ``methods``: the request methods below.
@@ -44,8 +45,8 @@ When the server has an API key, the opening request must carry ``Authorization: 
 only when it replans, so encoding locally leaves only replans on the network. ``target_encoder`` in the
 metadata is either ``{"runtime": "onnx", "sha256", "size_bytes", "cameras": [keys], "image_size",
 "downsample", "input_shape", "latent_dim"}``: fetch the graph with the ``target_encoder`` method, check its
-digest, and prepare an observation as :class:`pivla.model.onnx_encoder.ObservationEncoder` does (area-resize each listed camera
-to ``image_size``, area-average by ``downsample``, scale to [-1, 1], CHW float32, batch 1); or
+digest, and prepare an observation as :class:`pivla.model.onnx_encoder.ObservationEncoder` does (area-resize
+each listed camera to ``image_size``, area-average by ``downsample``, scale to [-1, 1], CHW float32, batch 1); or
 ``{"runtime": "server"}`` when the policy's target encoder has no ONNX export (a DINOv2 or thumbnail target,
 or onnxruntime missing on the server): the client then sends ``encode`` requests. The graph is not in the
 metadata itself so that a client that never encodes (openpi's) does not download it on every connect.

@@ -57,7 +57,8 @@ def actor_loss(continuous: torch.Tensor, log_sigma: torch.Tensor, actions_taken:
     return -_masked_mean(logp * advantages, mask)
 
 
-def critic_loss(values: torch.Tensor, value_now: torch.Tensor, returns: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def critic_loss(values: torch.Tensor, value_now: torch.Tensor, returns: torch.Tensor,
+                mask: torch.Tensor) -> torch.Tensor:
     """Regress [V(s_t), V[1..H]] onto the lambda-returns of the states they describe (masked past the end)."""
     pred = torch.cat([value_now.unsqueeze(1), values], dim=1).float()
     return _masked_mean((pred - returns) ** 2, mask)
@@ -108,7 +109,8 @@ def unified_loss(model: CMSModel, out: CMSOutput, batch: dict[str, torch.Tensor]
         if cfg.use_recon:
             size = model.cfg.decoder_size
             frames = batch["sp_images"][:, :, 0]  # first camera (agent view), (B,S,3,H,W)
-            small = F.interpolate(frames.flatten(0, 1).float(), size=(size, size), mode="area").unflatten(0, frames.shape[:2])
+            small = F.interpolate(frames.flatten(0, 1).float(), size=(size, size),
+                                  mode="area").unflatten(0, frames.shape[:2])
             l_rec = reconstruction_loss(model.decoder(pred), small, batch["sp_mask"])
             total = total + l_rec
             logs["recon"] = l_rec.detach()

@@ -290,7 +290,8 @@ class Trainer:
         rng = np.random.default_rng([cfg.seed + seed_offset, step, rank])
         batch = collate([dataset.sample(int(i), rng) for i in idx])
         if augment:
-            batch["images"] = augment_color(augment_shift(batch["images"], rng, cfg.augment_pad), rng, cfg.augment_color)
+            batch["images"] = augment_color(augment_shift(batch["images"], rng, cfg.augment_pad), rng,
+                                            cfg.augment_color)
         return batch_to_tensors(batch, self.device)
 
     # -- value refresh for the RL term -------------------------------------------------------------------
@@ -336,7 +337,8 @@ class Trainer:
                 out = self.ddp_model(batch, aux_on_trunk=cfg.loss.aux_on_trunk)
                 loss, logs = unified_loss(self.model, out, batch, cfg.loss)
                 if not torch.isfinite(loss):
-                    raise FloatingPointError(f"non-finite loss at step {self.step}: { {k: float(v) for k, v in logs.items()} }")
+                    raise FloatingPointError(f"non-finite loss at step {self.step}: "
+                                             f"{ {k: float(v) for k, v in logs.items()} }")
                 acc.backward(loss / cfg.grad_accum)
             for k, v in logs.items():
                 logs_sum[k] = logs_sum.get(k, 0.0) + float(v) / cfg.grad_accum
@@ -392,7 +394,8 @@ class Trainer:
             logs = self.train_step()
             bar.update(1)
             if self.step % cfg.log_every == 0 or self.step == cfg.steps:
-                rate = (self.step - s0) * cfg.batch_size * cfg.grad_accum * acc.num_processes / max(time.time() - t0, 1e-9)
+                rate = ((self.step - s0) * cfg.batch_size * cfg.grad_accum * acc.num_processes
+                        / max(time.time() - t0, 1e-9))
                 logs["samples_per_s"] = rate
                 self.history.append({"step": self.step, **{k: round(v, 5) for k, v in logs.items()}})
                 bar.set_postfix(loss=f"{logs['total']:.3f}", il=f"{logs['il']:.3f}")

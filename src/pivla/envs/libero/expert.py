@@ -91,7 +91,7 @@ class TaskExpert:
 
     source = "expert"
 
-    def __init__(self, config: ExpertConfig = ExpertConfig()) -> None:
+    def __init__(self, config: ExpertConfig = ExpertConfig()) -> None:  # noqa: B008 - frozen dataclass, safe to share
         self.base_config = config
         self.config = config
         self._episode: int | None = None
@@ -298,7 +298,8 @@ def _check_suite(suite: str) -> None:
                          f"LIBERO-PRO variants with the same goals), not {suite!r}")
 
 
-def expert_actor(suite: str, task: int | str, config: ExpertConfig = ExpertConfig()) -> TaskExpert:
+def expert_actor(suite: str, task: int | str,
+                 config: ExpertConfig = ExpertConfig()) -> TaskExpert:  # noqa: B008 - frozen dataclass, safe to share
     """A scripted expert for one task of LIBERO-Spatial / -Object / -Goal / -10 (or their LIBERO-PRO variants).
 
     Returns ``actor(env, obs) -> action`` (a :class:`TaskExpert`); ``env`` is the ``LiberoEnv`` from
@@ -320,7 +321,8 @@ class RolloutExpert:
 
     source = "expert"
 
-    def __init__(self, suite: str, task: int | str, config: ExpertConfig = ExpertConfig()) -> None:
+    def __init__(self, suite: str, task: int | str,
+                 config: ExpertConfig = ExpertConfig()) -> None:  # noqa: B008 - frozen dataclass, safe to share
         self.expert = expert_actor(suite, task, config)
         self.env: Any = None
 

@@ -287,7 +287,7 @@ class TabletopEnv(gymnasium.Env):
             "objects": {},
             "initial": {n: p.copy() for n, p in self._initial.items()},
         }
-        for name, (qadr, _, geom, body) in self._obj.items():
+        for name, (_qadr, _, geom, body) in self._obj.items():
             state["objects"][name] = {
                 "pos": d.xpos[body].copy(),
                 "yaw": _yaw_of_quat(d.xquat[body]),

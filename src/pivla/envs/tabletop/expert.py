@@ -188,13 +188,15 @@ class Expert:
                 yield from self._hold("close", 1.0, self.config.grip_steps, yaw)
                 lift_z = spec.grasp_z + self.lift
                 start = self._state()["ee_pos"].copy()
-                yield from self._move("lift", lambda s: np.array([start[0], start[1], lift_z]), yaw, 1.0, tol=0.015)
+                yield from self._move(
+                    "lift", lambda s, start=start, lift_z=lift_z: np.array([start[0], start[1], lift_z]), yaw, 1.0,
+                    tol=0.015)
                 if self._state()["objects"][name]["grasped"] or attempt == self.config.retries:
                     return
             yield from self._hold("reopen", -1.0, self.config.grip_steps, yaw)
             rise = self._state()["ee_pos"].copy()
             rise[2] = max(rise[2], spec.grasp_z + self.approach)
-            yield from self._move("rise", lambda s: rise, yaw, -1.0, tol=0.012, budget=10)
+            yield from self._move("rise", lambda s, rise=rise: rise, yaw, -1.0, tol=0.012, budget=10)
 
     def _missed_grasp(self, above: Target, grasp: Target, offset: np.ndarray, yaw: float) -> Iterator[np.ndarray]:
         """Executed: approach, descend and close ``offset`` away from the object. Labelled: the clean
@@ -259,7 +261,7 @@ class Expert:
                 base = tasks.OBJECTS[goal.onto]
                 yield from self._pick(goal.obj, self._state()["objects"][goal.onto]["pos"][:2])
                 rest = base.rest_z + base.size[2] + tasks.OBJECTS[goal.obj].size[2]
-                yield from self._place(goal.obj, lambda s: s["objects"][goal.onto]["pos"][:2].copy(), rest)
+                yield from self._place(goal.obj, lambda s, goal=goal: s["objects"][goal.onto]["pos"][:2].copy(), rest)
 
 
 def make_expert(noise: float = 0.0, miss: float = 0.0) -> Expert:

@@ -25,7 +25,7 @@ class PixelSpec:
     mode: str = "bicubic"
 
     @classmethod
-    def from_dir(cls, path: Path, image_size: int) -> "PixelSpec":
+    def from_dir(cls, path: Path, image_size: int) -> PixelSpec:
         """``image_size`` is the vision tower's input size (from config.json), used when the preprocessor
         config is absent or does not say."""
         f = path / "preprocessor_config.json"

@@ -34,7 +34,7 @@ class HFTextTokenizer:
         self._warned = False
 
     @classmethod
-    def from_pretrained(cls, path: str, max_len: int) -> "HFTextTokenizer":
+    def from_pretrained(cls, path: str, max_len: int) -> HFTextTokenizer:
         from transformers import AutoTokenizer
 
         p = check_local_dir(path, "hf tokenizer")
@@ -42,7 +42,7 @@ class HFTextTokenizer:
         return cls(tok, max_len, str(p.resolve()), _tokenizer_files(tok))
 
     @classmethod
-    def from_dict(cls, d: dict) -> "HFTextTokenizer":
+    def from_dict(cls, d: dict) -> HFTextTokenizer:
         from transformers import AutoTokenizer
 
         files = d.get("files") or {}
