@@ -19,6 +19,7 @@ setup-openpi-client:
 	bash scripts/setup-openpi-client.sh
 
 test: setup setup-libero setup-openpi-client
+	$(VENV)/bin/ruff check src tests
 	$(PY) -m pytest -q
 
 test-slow: setup setup-libero setup-openpi-client
