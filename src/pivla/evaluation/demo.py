@@ -20,6 +20,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from pivla.control.asynchronous import AsyncConfig, ExecutionConfig, SyncConfig
 from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
 from pivla.envs.backend import BackendConfig
@@ -84,6 +85,9 @@ class DemoConfig:
     """Executors of the distraction sweep."""
     level_episodes: int = 5
     """Episodes per task and level."""
+    latency_ms: str | None = "200"
+    """The latency cell (docs/latency.md): the fixed horizon in distribution with the policy answering this late,
+    synchronously and asynchronously (threshold 3, the one that kept its success at 200 ms); None: no cell."""
     workers: int = 2
     """Worker processes for collection and evaluation."""
     dispatch: Annotated[BackendConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=BackendConfig)
@@ -147,15 +151,20 @@ def run_demo(cfg: DemoConfig) -> Path:
             cfg.workers, family=True, dispatch=cfg.dispatch), "validation", "fixed"))
     if _stage("calibrate", (run_dir / "calibration.json").exists()):
         timed("calibrate", lambda: calibrate_on_rollouts(run_dir, rollouts_dir, val_dir, cfg.calibration))
-    cells = [(c, e, *CONDITIONS[c], cfg.test_episodes, 2) for c in cfg.conditions for e in EXECUTORS]
-    cells += [(f"distraction_level_{lv}", e, "distraction_level", f"level={lv}" if lv else None, cfg.level_episodes, 0)
-              for lv in cfg.levels for e in cfg.level_executors]
-    for condition, executor, code, perturb, episodes, videos in cells:
+    sync: ExecutionConfig = SyncConfig()
+    cells = [(c, e, *CONDITIONS[c], cfg.test_episodes, 2, sync, "0") for c in cfg.conditions for e in EXECUTORS]
+    cells += [(f"distraction_level_{lv}", e, "distraction_level", f"level={lv}" if lv else None, cfg.level_episodes, 0,
+               sync, "0") for lv in cfg.levels for e in cfg.level_executors]
+    if cfg.latency_ms is not None:
+        cells += [(f"latency_{cfg.latency_ms}ms_{mode.kind}", "fixed", "in_distribution", None, cfg.test_episodes, 0,
+                   mode, cfg.latency_ms) for mode in (sync, AsyncConfig(threshold=3))]
+    for condition, executor, code, perturb, episodes, videos, execution, latency in cells:
         target = out / "eval" / condition / executor
         if _stage(f"eval {condition} {executor}", (target / "results.json").exists()):
             ec = EvalConfig(policy=str(run_dir), out=str(target), executor=executor_config(executor),
                             episodes=episodes, seed_family="test", condition=code, perturb=perturb,
-                            realism=cfg.realism, workers=cfg.workers, dispatch=cfg.dispatch, videos=videos)
+                            realism=cfg.realism, workers=cfg.workers, dispatch=cfg.dispatch, videos=videos,
+                            execution=execution, latency_ms=latency)
             timed(f"eval_{condition}_{executor}",
                   lambda ec=ec, c=condition, e=executor: _log_eval(evaluate(ec, progress=False), c, e))
     report = write_report(out)
