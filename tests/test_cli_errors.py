@@ -11,7 +11,7 @@ from pivla.data.format import DatasetError
 
 
 def test_a_user_error_is_one_line_and_debug_shows_the_exception(tmp_path, monkeypatch):
-    monkeypatch.delenv(DEBUG_ENV, raising=False)
+    monkeypatch.setenv(DEBUG_ENV, "0")  # restored after the test, so --debug below does not leak into later tests
     with pytest.raises(SystemExit) as info:
         main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--steps", "2"])
     first, hint = str(info.value.code).splitlines()
