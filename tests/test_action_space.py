@@ -8,10 +8,8 @@ The SO-101 dataset is written here with pyarrow and PyAV in the layout lerobot 0
 import dataclasses
 import hashlib
 import json
-from fractions import Fraction
 from pathlib import Path
 
-import av
 import h5py
 import numpy as np
 import pyarrow as pa
@@ -35,6 +33,7 @@ from pivla.policy import load_policy
 from pivla.training.config import FROM_DATASET
 from pivla.training.trainer import Trainer
 from tests.conftest import tiny_train_config
+from tests.lerobot_files import encode_video, fixed_list
 
 JOINTS = ["shoulder_pan.pos", "shoulder_lift.pos", "elbow_flex.pos", "wrist_flex.pos", "wrist_roll.pos", "gripper.pos"]
 FPS, H, W = 30, 48, 64
@@ -43,25 +42,6 @@ TINY_FLAGS = ["--steps", "3", "--batch-size", "4", "--warmup", "1", "--log-every
               "--ckpt-every", "100", "--value-refresh-every", "100", "--threads", "2", "--no-progress",
               "--model.image-size", "32", "--model.backbone.d-model", "64", "--model.backbone.n-layers", "1",
               "--model.backbone.vision-channels", "16", "16", "32", "32"]
-
-
-def _list(x: np.ndarray) -> pa.Array:
-    x = np.ascontiguousarray(x, np.float32)
-    return pa.FixedSizeListArray.from_arrays(pa.array(x.ravel()), x.shape[1])
-
-
-def _video(path: Path, frames: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with av.open(str(path), "w") as c:
-        s = c.add_stream("libx264", rate=FPS, options={"g": "2", "crf": "20"})
-        s.width, s.height, s.pix_fmt = W, H, "yuv420p"
-        for i, im in enumerate(frames):
-            f = av.VideoFrame.from_ndarray(im, format="rgb24")
-            f.pts, f.time_base = i, Fraction(1, FPS)
-            for p in s.encode(f):
-                c.mux(p)
-        for p in s.encode():
-            c.mux(p)
 
 
 def write_so101(root: Path, lengths=(12, 10, 14), names=JOINTS) -> dict:
@@ -89,8 +69,8 @@ def write_so101(root: Path, lengths=(12, 10, 14), names=JOINTS) -> dict:
         for t in range(T):
             picture[t, 16:28, 2 + 3 * t:12 + 3 * t] = 240
         frames.append(picture)
-        cols["action"].append(_list(a))
-        cols["observation.state"].append(_list(np.concatenate([a[:1], a[:-1]])))
+        cols["action"].append(fixed_list(a))
+        cols["observation.state"].append(fixed_list(np.concatenate([a[:1], a[:-1]])))
         cols["timestamp"].append(pa.array((np.arange(T) / FPS).astype(np.float32)))
         cols["frame_index"].append(pa.array(np.arange(T, dtype=np.int64)))
         cols["episode_index"].append(pa.array(np.full(T, e, np.int64)))
@@ -110,7 +90,8 @@ def write_so101(root: Path, lengths=(12, 10, 14), names=JOINTS) -> dict:
                    root / "data/chunk-000/file-000.parquet")
     for cam, flip in (("front", False), ("wrist", True)):
         video = np.concatenate(frames)
-        _video(root / f"videos/observation.images.{cam}/chunk-000/file-000.mp4", video[:, ::-1] if flip else video)
+        encode_video(root / f"videos/observation.images.{cam}/chunk-000/file-000.mp4",
+                     video[:, ::-1] if flip else video, FPS, "libx264")
     (root / "meta/episodes/chunk-000").mkdir(parents=True)
     pq.write_table(pa.Table.from_pylist(rows), root / "meta/episodes/chunk-000/file-000.parquet")
     pq.write_table(pa.table({"task_index": pa.array([0], pa.int64()), "__index_level_0__": ["grab the cube"]}),

@@ -6,7 +6,6 @@ code (not pivla's writer), so reader and writer are each checked against the doc
 
 import json
 import shutil
-from fractions import Fraction
 
 import av
 import cv2
@@ -29,6 +28,7 @@ from pivla.data.lerobot import (
 )
 from pivla.data.synthetic import make_synthetic_dataset
 from tests.conftest import tiny_train_config
+from tests.lerobot_files import encode_video, fixed_list
 
 FPS = 10
 H, W = 32, 48
@@ -50,26 +50,6 @@ def _frames(T: int, seed: int) -> np.ndarray:
         x = 2 + 2 * t
         out[t, 10:18, x:x + 8] = (240, 240, 240)
     return out
-
-
-def _fixed(x) -> pa.Array:
-    x = np.asarray(x, np.float32)
-    return pa.FixedSizeListArray.from_arrays(pa.array(x.ravel()), x.shape[1])
-
-
-def _encode(path, frames: np.ndarray) -> None:
-    """Frames of consecutive episodes back to back in one mp4 (what lerobot's concatenation produces)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with av.open(str(path), "w") as c:
-        s = c.add_stream(LEROBOT_CODEC, rate=FPS, options={"g": "2", "crf": "20"})
-        s.width, s.height, s.pix_fmt = W, H, "yuv420p"
-        for i, im in enumerate(frames):
-            f = av.VideoFrame.from_ndarray(im, format="rgb24")
-            f.pts, f.time_base = i, Fraction(1, FPS)
-            for p in s.encode(f):
-                c.mux(p)
-        for p in s.encode():
-            c.mux(p)
 
 
 def write_fixture(root, lengths=(5, 7, 4), state_names=None, with_rewards=False, png_wrist=False) -> dict:
@@ -109,8 +89,8 @@ def write_fixture(root, lengths=(5, 7, 4), state_names=None, with_rewards=False,
         video_t = 0
         for e in eps:
             s, T = src[e], lengths[e]
-            cols["observation.state"].append(_fixed(s["state"]))
-            cols["action"].append(_fixed(s["actions"]))
+            cols["observation.state"].append(fixed_list(s["state"]))
+            cols["action"].append(fixed_list(s["actions"]))
             if png_wrist:
                 cols["observation.images.wrist"].append(pa.array(
                     [{"bytes": cv2.imencode(".png", im[..., ::-1])[1].tobytes(), "path": None} for im in s["wrist"]],
@@ -137,8 +117,8 @@ def write_fixture(root, lengths=(5, 7, 4), state_names=None, with_rewards=False,
         path = root / f"data/chunk-000/file-{file_index:03d}.parquet"
         path.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(table, path)
-        _encode(root / f"videos/observation.images.image/chunk-000/file-{file_index:03d}.mp4",
-                np.concatenate([src[e]["image"] for e in eps]))
+        encode_video(root / f"videos/observation.images.image/chunk-000/file-{file_index:03d}.mp4",
+                     np.concatenate([src[e]["image"] for e in eps]), FPS, LEROBOT_CODEC)
     (root / "meta/episodes/chunk-000").mkdir(parents=True)
     pq.write_table(pa.Table.from_pylist(rows), root / "meta/episodes/chunk-000/file-000.parquet")
     pq.write_table(pa.table({"task_index": pa.array([0, 1], pa.int64()), "__index_level_0__": tasks}),
