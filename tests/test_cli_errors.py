@@ -1,5 +1,6 @@
 """Bad input on the command line: one line naming the problem and a non-zero exit, the traceback only with --debug."""
 
+import os
 import subprocess
 import sys
 
@@ -11,7 +12,7 @@ from pivla.data.format import DatasetError
 
 
 def test_a_user_error_is_one_line_and_debug_shows_the_exception(tmp_path, monkeypatch):
-    monkeypatch.setenv(DEBUG_ENV, "0")  # restored after the test, so --debug below does not leak into later tests
+    monkeypatch.delenv(DEBUG_ENV, raising=False)
     with pytest.raises(SystemExit) as info:
         main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--steps", "2"])
     first, hint = str(info.value.code).splitlines()
@@ -19,6 +20,7 @@ def test_a_user_error_is_one_line_and_debug_shows_the_exception(tmp_path, monkey
     assert "--debug" in hint
     with pytest.raises(DatasetError, match="no .hdf5 files"):
         main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--steps", "2", "--debug"])
+    assert DEBUG_ENV not in os.environ  # --debug holds for its own command only
     assert not (tmp_path / "run" / "model.safetensors").exists()
 
 

@@ -92,13 +92,21 @@ def _exit_on_sigterm(signum: int, frame: object) -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    if "--debug" in argv[: argv.index("--") if "--" in argv else len(argv)]:
-        argv.remove("--debug")
-        os.environ[DEBUG_ENV] = "1"
     if argv[:1] == ["--version"]:
         print(f"pivla {__version__}")
         return 0
-    return run(COMMANDS, argv, prog="pivla", intro=WORKFLOW.format(version=__version__))
+    if "--debug" not in argv[: argv.index("--") if "--" in argv else len(argv)]:
+        return run(COMMANDS, argv, prog="pivla", intro=WORKFLOW.format(version=__version__))
+    argv.remove("--debug")
+    before = os.environ.get(DEBUG_ENV)
+    os.environ[DEBUG_ENV] = "1"  # for this command and the worker processes it starts, not for later calls
+    try:
+        return run(COMMANDS, argv, prog="pivla", intro=WORKFLOW.format(version=__version__))
+    finally:
+        if before is None:
+            os.environ.pop(DEBUG_ENV, None)
+        else:
+            os.environ[DEBUG_ENV] = before
 
 
 if __name__ == "__main__":
