@@ -16,14 +16,13 @@ firmware gets the same limits converted to pulses (``board_limits``) so both end
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from pivla.envs import arm
+from pivla.io import atomic_write_bytes
 from pivla.robot import protocol as P
 
 NOMINAL_US_PER_RAD = 2000.0 / np.pi
@@ -32,6 +31,16 @@ CALIBRATION_VERSION = 1
 
 class CalibrationError(ValueError):
     """A calibration file is missing, malformed or unsafe; the message names the field."""
+
+
+def read_calibration_json(path: Path, how_to_make: str) -> object:
+    """A calibration file's JSON, or a CalibrationError naming the file: missing (with how to make one) or corrupt."""
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError as exc:
+        raise CalibrationError(f"calibration file not found: {path} ({how_to_make})") from exc
+    except json.JSONDecodeError as exc:
+        raise CalibrationError(f"{path} is not valid JSON: {exc}") from exc
 
 
 @dataclass
@@ -129,25 +138,15 @@ class ArmCalibration:
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         doc = {"version": CALIBRATION_VERSION, "name": self.name, "joints": [asdict(j) for j in self.joints],
                "gripper": asdict(self.gripper)}
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "w") as fh:
-            json.dump(doc, fh, indent=2)
-        os.replace(tmp, path)
+        atomic_write_bytes(path, json.dumps(doc, indent=2).encode())
         return path
 
     @classmethod
     def load(cls, path: str | Path) -> ArmCalibration:
         path = Path(path)
-        try:
-            doc = json.loads(path.read_text())
-        except FileNotFoundError as exc:
-            raise CalibrationError(f"calibration file not found: {path} "
-                                   f"(create one with `pivla robot calibrate`)") from exc
-        except json.JSONDecodeError as exc:
-            raise CalibrationError(f"{path} is not valid JSON: {exc}") from exc
+        doc = read_calibration_json(path, "create one with `pivla robot calibrate`")
         if not isinstance(doc, dict) or doc.get("version") != CALIBRATION_VERSION:
             raise CalibrationError(f"{path}: expected a calibration object with version {CALIBRATION_VERSION}")
         try:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -29,8 +28,9 @@ from typing import Literal, Self
 
 import numpy as np
 
+from pivla.io import atomic_write_bytes
 from pivla.robot import feetech as F
-from pivla.robot.calibration import CalibrationError
+from pivla.robot.calibration import CalibrationError, read_calibration_json
 from pivla.robot.safety import JointGuard, Violation
 
 log = logging.getLogger(__name__)
@@ -110,13 +110,8 @@ class SO101Calibration:
         path = Path(path)
         if arm_id is not None and path.stem != arm_id:
             raise CalibrationError(f"{path} is the calibration of arm {path.stem!r}, not of arm {arm_id!r}")
-        try:
-            doc = json.loads(path.read_text())
-        except FileNotFoundError as exc:
-            raise CalibrationError(f"calibration file not found: {path} (calibrate the arm with LeRobot's "
-                                   f"lerobot-calibrate --robot.type={ROBOT_TYPE} --robot.id={path.stem})") from exc
-        except json.JSONDecodeError as exc:
-            raise CalibrationError(f"{path} is not valid JSON: {exc}") from exc
+        doc = read_calibration_json(path, "calibrate the arm with LeRobot's "
+                                    f"lerobot-calibrate --robot.type={ROBOT_TYPE} --robot.id={path.stem}")
         if not isinstance(doc, dict):
             raise CalibrationError(f"{path}: expected an object keyed by motor name")
         try:
@@ -128,11 +123,7 @@ class SO101Calibration:
     def save(self, path: str | Path) -> Path:
         """Writes LeRobot's layout atomically (motors in id order)."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "w") as fh:
-            json.dump({name: asdict(self.motors[name]) for name in MOTORS}, fh, indent=4)
-        os.replace(tmp, path)
+        atomic_write_bytes(path, json.dumps({name: asdict(self.motors[name]) for name in MOTORS}, indent=4).encode())
         return path
 
     def _table(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
