@@ -11,6 +11,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 # bottom -> top; a module belongs to the longest prefix listed
 LAYERS = [
     ("pivla.io", "pivla.config"),
+    ("pivla.arm",),
     ("pivla.model",),
     ("pivla.data",),
     ("pivla.training",),
@@ -131,10 +132,10 @@ def test_no_import_circles():
 
 
 @pytest.mark.parametrize("module", ["pivla.control", "pivla.control.executors", "pivla.serving.client",
-                                    "pivla.data.transforms"])
+                                    "pivla.data.transforms", "pivla.arm"])
 def test_the_robot_side_imports_no_torch(module):
-    """What a robot laptop runs (executors, the remote policy, picture preparation) imports neither torch nor
-    MuJoCo."""
+    """What a robot laptop runs (executors, the remote policy, picture preparation, the arm's kinematics) imports
+    neither torch nor MuJoCo."""
     import subprocess
     import sys
 

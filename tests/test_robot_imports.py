@@ -47,7 +47,7 @@ sys.meta_path.insert(0, NotInstalled())
 
 import numpy as np
 
-from pivla.envs import arm
+from pivla import arm
 from pivla.robot import {", ".join(CLIENT_MODULES)}  # noqa: F401
 from pivla.robot.calibration import ArmCalibration
 from pivla.robot.env import RobotEnv, RobotEnvConfig

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from pivla.envs import arm
+from pivla import arm
 from pivla.robot.calibration import ArmCalibration, CalibrationError
 from pivla.robot.safety import SafetyConfig, SafetyError, SafetyLayer
 

@@ -283,7 +283,7 @@ def jog_zero_offsets(board, calib, keys):
     Keys: '+'/'-' 10 us, ']'/'[' 50 us, 'r' reverse direction, Enter accept, 's' skip. Moves stay inside
     the board's current limits (the firmware refuses anything else).
     """
-    from pivla.envs import arm
+    from pivla import arm
 
     st = board.state()
     pulses = list(st.targets_us)

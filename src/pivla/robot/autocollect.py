@@ -24,8 +24,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pivla import arm
 from pivla.data.format import Episode, write_episodes
-from pivla.envs import arm
 from pivla.robot.env import RobotEnv, RobotEnvConfig
 
 log = logging.getLogger(__name__)

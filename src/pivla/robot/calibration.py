@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pivla.envs import arm
+from pivla import arm
 from pivla.io import atomic_write_bytes
 from pivla.robot import protocol as P
 

@@ -17,7 +17,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from pivla.envs import arm
+from pivla import arm
 from pivla.robot.robot import Camera, Robot, RobotState
 from pivla.robot.safety import SafetyError
 

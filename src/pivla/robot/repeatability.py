@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pivla.envs import arm
+from pivla import arm
 
 
 def run_repeatability(robot, repeats: int, n_targets: int, seed: int = 0) -> dict:

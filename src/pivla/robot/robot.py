@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pivla.envs import arm
+from pivla import arm
 from pivla.robot.calibration import ArmCalibration
 from pivla.robot.link import Board, BoardError, LinkLost
 from pivla.robot.safety import CheckedCommand, SafetyLayer

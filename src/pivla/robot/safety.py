@@ -20,7 +20,7 @@ from typing import Literal
 
 import numpy as np
 
-from pivla.envs import arm
+from pivla import arm
 from pivla.robot.calibration import ArmCalibration
 
 log = logging.getLogger(__name__)

@@ -17,7 +17,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pivla.envs import arm  # noqa: E402
+from pivla import arm  # noqa: E402
 from pivla.envs.tabletop import env as twin  # noqa: E402
 from pivla.envs.tabletop import make_env  # noqa: E402
 from pivla.robot.calibration import ArmCalibration  # noqa: E402

@@ -23,8 +23,8 @@ import gymnasium
 import mujoco
 import numpy as np
 
-from pivla.envs import arm
-from pivla.envs.arm import CONTROL_HZ, IK_ITERATIONS, ROT_SCALE, TRANS_SCALE  # the action convention
+from pivla import arm
+from pivla.arm.constants import CONTROL_HZ, IK_ITERATIONS, ROT_SCALE, TRANS_SCALE  # the action convention
 from pivla.envs.tabletop import tasks
 from pivla.envs.tabletop.perturb import PerturbConfig, Perturber, parse_perturb
 from pivla.envs.tabletop.scene import CAB_HALF_W, asset_files, scene_xml

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pivla.envs import arm
+from pivla import arm
 from pivla.envs.tabletop import tasks
 from pivla.envs.tabletop.env import ROT_SCALE, TRANS_SCALE, TabletopEnv
 

@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from pivla.envs import arm
+from pivla import arm
 from pivla.envs.tabletop import tasks
 from pivla.envs.tabletop.scene import task_name
 
@@ -106,7 +106,7 @@ RECOVERY_CM = (2.0, 8.0)  # distance range of a recovery event (training data), 
 RECOVERY_WINDOW = (3, 25)  # its step range: the tests' window (5-7) and the rest of the approach
 NEAR_DISTANCE = 0.06  # m between the tool centre and the object's centre for "@near"
 FINGER_CLEARANCE = 0.005  # m kept between a displaced object and the fingers
-FINGER_HALF_WIDTH = 0.011  # m: a finger pad's largest horizontal half-size (assets/arm.xml)
+FINGER_HALF_WIDTH = 0.011  # m: a finger pad's largest horizontal half-size (pivla/arm/arm.xml)
 OBJECT_REACH = (0.12, 0.25)  # m from the base: where a displaced object may land (top-down grasps reach 0.12-0.27)
 GOAL_REACH = 0.27  # m from the base: the displaced object's goal must stay reachable
 OBJECT_SPACING = 0.05  # m between a displaced object and any other task object

@@ -1,4 +1,4 @@
-"""MJCF of one task's scene: the arm (``assets/arm.xml``), a table, the task's objects, an optional drawer
+"""MJCF of one task's scene: the arm (``pivla/arm/arm.xml``), a table, the task's objects, an optional drawer
 cabinet, and visual-only distractor slots. Shadows and multisampling are off: on a CPU renderer they cost
 ~20x the frame time of this primitive scene (docs/twin.md)."""
 
@@ -10,7 +10,7 @@ import cv2
 import mujoco
 import numpy as np
 
-from pivla.envs.arm import ARM_XML
+from pivla.arm.constants import ARM_XML
 from pivla.envs.tabletop.tasks import CABINET_FRONT_X, OBJECTS, TaskDef
 
 TABLE_RGBA = (0.78, 0.66, 0.52, 1.0)
