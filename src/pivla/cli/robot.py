@@ -93,6 +93,16 @@ def make_cameras(arm: ArmConfig, cams: CameraConfig, robot) -> dict:
     return out
 
 
+def _rig(arm: ArmConfig, cams: CameraConfig | None = None, instruction: str = "", **options):
+    """The arm, its cameras (with ``cams``) and its env (``pivla.robot.factory.open_rig``)."""
+    from pivla.robot.factory import open_rig
+
+    camera = dict(camera=cams.camera, wrist_camera=cams.wrist_camera, image_size=cams.image_size) if cams else {}
+    return open_rig("pivla-arm", port=arm.port, sim=arm.sim, calibration=arm.calibration, suite=arm.suite,
+                    task=arm.task, seed=arm.seed, cameras=cams is not None, instruction=instruction, **camera,
+                    **options)
+
+
 @dataclass
 class ArmCommand:
     """An arm (serial or twin)."""
@@ -444,23 +454,12 @@ class RunCommand:
 
 
 def run_policy(cmd: RunCommand) -> int:
-    from pivla.control import make_executor, run_episode
-    from pivla.robot.env import RobotEnv, RobotEnvConfig
+    from pivla.robot.run import run_policy as run_loop
     from pivla.serving.client import open_policy
 
-    robot = make_robot(cmd.arm)
-    env = RobotEnv(robot, make_cameras(cmd.arm, cmd.cameras, robot), cmd.instruction,
-                   RobotEnvConfig(realtime=not cmd.arm.sim, max_steps=cmd.max_steps))
     policy = open_policy(cmd.policy, api_key=cmd.api_key)
-    results = []
-    try:
-        for ep in range(cmd.episodes):
-            results.append(run_episode(env, policy, make_executor(cmd.executor), seed=cmd.arm.seed + ep).summary())
-            log.info("episode %d: %s", ep, results[-1])
-    finally:
-        robot.stop()
-        env.close()
-        robot.close()
+    with _rig(cmd.arm, cmd.cameras, cmd.instruction, max_steps=cmd.max_steps) as rig:
+        results = run_loop(rig.env, policy, cmd.executor, episodes=cmd.episodes, seed=cmd.arm.seed)
     print(json.dumps(results, default=str, indent=2))
     return 0
 

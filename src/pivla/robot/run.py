@@ -5,7 +5,8 @@
 executor config, and runs ``episodes`` episodes, each with a fresh executor and seed ``seed + episode``.
 Options of ``pivla.control.run_episode`` (``max_steps``, ``execution``, ``latency``, ...) pass through.
 Every command the executor's actions become goes through the arm's safety layer inside the env; whatever
-ends the loop (the last episode, an error, Ctrl-C), the arm is stopped (it holds) and the env closed.
+ends the loop (the last episode, an error, Ctrl-C), the arm is stopped (it holds where it is). The caller
+opened the env and closes it (``pivla.robot.factory.open_rig`` gives one that closes arm and cameras).
 """
 
 from __future__ import annotations
@@ -29,8 +30,5 @@ def run_policy(env: Any, policy: Any, executor: ExecutorConfig, episodes: int = 
             results.append(result.summary())
             log.info("episode %d: %s", ep, results[-1])
     finally:
-        stop = getattr(env, "stop", None) or getattr(getattr(env, "robot", None), "stop", None)
-        if stop is not None:
-            stop()
-        env.close()
+        env.robot.stop()
     return results
