@@ -25,9 +25,9 @@ from pivla.data.action_space import (
     ActionSpace,
     infer_action_space,
 )
-from pivla.data.datasets import dataset_layout, read_dataset
 from pivla.data.format import DatasetError, read_action_space, write_episodes
 from pivla.data.lerobot import convert, lerobot_action_space
+from pivla.data.read import dataset_layout, read_dataset
 from pivla.data.synthetic import make_synthetic_dataset
 from pivla.policy import load_policy
 from pivla.training.config import FROM_DATASET

@@ -3,7 +3,7 @@
 import json
 
 from pivla.cli import main
-from pivla.data.datasets import read_dataset
+from pivla.data.read import read_dataset
 
 
 def test_bench_infer_json(capsys):

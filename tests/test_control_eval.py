@@ -9,8 +9,8 @@ import pytest
 
 from pivla.control.calibrate import calibrate
 from pivla.control.executors import executor_config
-from pivla.data.datasets import read_dataset
 from pivla.data.format import write_episodes
+from pivla.data.read import read_dataset
 from pivla.envs.rollout import collect_episodes
 from pivla.envs.tabletop import make_env
 from pivla.envs.tabletop.expert import make_expert

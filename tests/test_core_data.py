@@ -2,7 +2,10 @@ import h5py
 import numpy as np
 import pytest
 
-from pivla.data.dataset import (
+from pivla.data.format import DatasetError, Episode, read_episodes, write_episodes
+from pivla.data.normalize import ActionStats
+from pivla.data.read import read_dataset
+from pivla.data.samples import (
     ChunkDataset,
     fit_norm_stats,
     gae,
@@ -11,9 +14,6 @@ from pivla.data.dataset import (
     prepare_episodes,
     split_episodes,
 )
-from pivla.data.datasets import read_dataset
-from pivla.data.format import DatasetError, Episode, read_episodes, write_episodes
-from pivla.data.normalize import ActionStats
 from pivla.data.synthetic import synthetic_episode
 from pivla.data.text import WordTokenizer
 from pivla.model.config import ModelConfig

@@ -131,8 +131,8 @@ def test_auto_picture_store_goes_to_disk_past_a_third_of_the_ram():
 
 
 def test_extra_data_follows_the_data_in_one_split(tmp_path, synthetic_data):
-    from pivla.data.dataset import prepare_episode
-    from pivla.data.datasets import read_dataset
+    from pivla.data.read import read_dataset
+    from pivla.data.samples import prepare_episode
     from pivla.data.synthetic import make_synthetic_dataset
 
     extra = make_synthetic_dataset(tmp_path / "extra", episodes_per_goal=1, T=7, size=32, failures=1)
@@ -184,7 +184,7 @@ def test_cli_flags_reach_nested_config(tmp_path, synthetic_data, capsys):
 def test_one_head_policy_executes_its_head_and_has_no_action_uncertainty(tmp_path, synthetic_data, head):
     """Table 4's one-head variants: the trained head is executed, and U_act (the disagreement of two trained
     heads, Eq. 13) is zero instead of a comparison with the untrained head."""
-    from pivla.data.datasets import read_dataset
+    from pivla.data.read import read_dataset
     from pivla.training.losses import LossConfig
 
     other = "use_discrete" if head == "continuous" else "use_continuous"

@@ -17,7 +17,7 @@ from safetensors.torch import load_file  # noqa: E402
 
 from pivla import load_policy  # noqa: E402
 from pivla.bench.hf import make_tiny_dinov2, make_tiny_vlm  # noqa: E402
-from pivla.data.datasets import read_dataset  # noqa: E402
+from pivla.data.read import read_dataset  # noqa: E402
 from pivla.data.synthetic import make_synthetic_dataset  # noqa: E402
 from pivla.model.config import BackboneConfig, ModelConfig, TargetEncoderConfig  # noqa: E402
 from pivla.training.config import TrainConfig  # noqa: E402

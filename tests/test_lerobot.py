@@ -15,7 +15,6 @@ import pyarrow.parquet as pq
 import pytest
 
 from pivla.data.action_space import EE_DELTA
-from pivla.data.datasets import read_dataset
 from pivla.data.format import DatasetError, Episode, write_episodes
 from pivla.data.lerobot import (
     ConvertConfig,
@@ -26,6 +25,7 @@ from pivla.data.lerobot import (
     run_convert,
     write_lerobot,
 )
+from pivla.data.read import read_dataset
 from pivla.data.synthetic import make_synthetic_dataset
 from tests.conftest import tiny_train_config
 from tests.lerobot_files import encode_video, fixed_list

@@ -38,7 +38,7 @@ def test_suites_without_expert_are_refused(tmp_path):
 @pytest.mark.slow
 def test_collect_one_libero_episode(tmp_path):
     """One rendered expert episode (~20 s): stored frames, actions, success and metadata read back."""
-    from pivla.data.datasets import read_dataset
+    from pivla.data.read import read_dataset
 
     code = main(["collect", "--env", "libero", "--suite", "libero_spatial", "--tasks", "5", "--episodes", "1",
                  "--out", str(tmp_path), "--image-size", "32", "--libero-step-factor", "1.5"])
@@ -74,7 +74,7 @@ def test_libero_run_end_to_end_on_one_task(tmp_path):
     import dataclasses
     import json
 
-    from pivla.data.datasets import read_dataset
+    from pivla.data.read import read_dataset
     from pivla.evaluation.libero import LiberoRunConfig, run_libero
     from pivla.evaluation.runner import load_rows
     from pivla.training.config import libero_preset
@@ -106,7 +106,7 @@ def test_libero_run_end_to_end_on_one_task(tmp_path):
 def test_an_interrupted_libero_task_resumes_at_its_next_attempt(tmp_path, monkeypatch):
     """Kept episodes and the attempt count survive an interruption (~40 s): the rerun plays only the attempts
     not yet made and the task's file holds the episode recorded before the interruption."""
-    from pivla.data.datasets import read_dataset
+    from pivla.data.read import read_dataset
     from pivla.envs import collect
 
     played, real = [], collect.run_episode

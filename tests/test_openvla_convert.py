@@ -23,7 +23,7 @@ from safetensors.torch import save_file  # noqa: E402
 
 from pivla import load_policy  # noqa: E402
 from pivla.bench.hf import write_tiny_tokenizer  # noqa: E402
-from pivla.data.datasets import read_dataset  # noqa: E402
+from pivla.data.read import read_dataset  # noqa: E402
 from pivla.data.synthetic import make_synthetic_dataset  # noqa: E402
 from pivla.model.config import BackboneConfig, ModelConfig  # noqa: E402
 from pivla.model.hf.backbone import HFBackbone  # noqa: E402

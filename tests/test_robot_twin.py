@@ -44,7 +44,7 @@ def test_repeatability_and_autocollect_commands(tmp_path, capsys):
     assert main(["robot", "autocollect", "--sim", "--attempts", "2", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert '"vision_success_rate"' in out
-    from pivla.data.datasets import read_dataset
+    from pivla.data.read import read_dataset
 
     eps = read_dataset(tmp_path)
     assert len(eps) == 2 and all(e.source == "autocollect" for e in eps)

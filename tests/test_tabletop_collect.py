@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pivla.cli import main
-from pivla.data.datasets import read_dataset
+from pivla.data.read import read_dataset
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +42,7 @@ def test_collect_writes_libero_layout(dataset):
 
 
 def test_dataset_loads_through_training_pipeline(dataset):
-    from pivla.data.dataset import ChunkDataset, fit_norm_stats, prepare_episode
+    from pivla.data.samples import ChunkDataset, fit_norm_stats, prepare_episode
     from pivla.data.text import WordTokenizer
     from pivla.model.config import ModelConfig
 

@@ -59,7 +59,7 @@ def held_out_episodes(run_dir: str, episodes: list) -> list:
 
 def calibrate(cmd: CalibrateCommand) -> int:
     from pivla.control.calibrate import calibrate as run
-    from pivla.data.datasets import read_dataset
+    from pivla.data.read import read_dataset
     from pivla.policy import load_policy
     from pivla.training.checkpoint import write_calibration
 

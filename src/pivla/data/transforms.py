@@ -2,7 +2,7 @@
 
 Each transform maps a dict to a new dict and works on one time step or on a whole episode alike (arrays
 are time-major, transforms only touch the trailing axes). ``input_pipeline`` composes them once; the training
-dataset (``pivla.data.dataset.prepare_episode``) and the policy (``pivla.policy.Policy``) both call it, so
+dataset (``pivla.data.samples.prepare_episode``) and the policy (``pivla.policy.Policy``) both call it, so
 training and inference cannot drift apart. The policy's output steps (Eq. 12 de-quantization, Eq. 13, head
 selection, un-normalization) are in ``pivla.policy``.
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from pivla.control.calibrate import CalibrationConfig, calibrate
 from pivla.control.executors import FixedConfig
-from pivla.data.datasets import read_dataset
+from pivla.data.read import read_dataset
 from pivla.envs.backend import BackendConfig
 from pivla.evaluation.runner import EvalConfig, evaluate
 from pivla.model.config import ModelConfig

@@ -226,7 +226,7 @@ class CMSModel(nn.Module):
         unset = [name for name in ("cameras", "proprio_keys", "proprio_dim", "action_dim") if not getattr(cfg, name)]
         if unset:
             raise ValueError(f"model config leaves {unset} to the dataset: fill them from one first "
-                             "(pivla.data.dataset.resolve_inputs)")
+                             "(pivla.data.samples.resolve_inputs)")
         self.cfg = cfg
         self.backbone = build_backbone(cfg, vocab_size)
         d = self.backbone.d_model

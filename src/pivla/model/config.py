@@ -89,7 +89,7 @@ class TargetEncoderConfig:
 class ModelConfig:
     """The CMS model: chunk and horizon, inputs, heads (paper Eqs. 3-7). The defaults of the inputs and of D
     are the twin's layout; a training config leaves them empty, and training fills them from its dataset
-    (``pivla.data.dataset.resolve_inputs``), so a run's config.json holds the values the model was built with."""
+    (``pivla.data.samples.resolve_inputs``), so a run's config.json holds the values the model was built with."""
 
     chunk: int = 8
     """K, actions per chunk."""

@@ -12,7 +12,7 @@ from typing import Literal
 
 from pivla.model.config import BackboneConfig, ModelConfig, TargetEncoderConfig
 
-# the model inputs a training run takes from its dataset unless they are named (pivla.data.dataset.resolve_inputs)
+# the model inputs a training run takes from its dataset unless they are named (pivla.data.samples.resolve_inputs)
 FROM_DATASET = {"cameras": (), "proprio_keys": (), "proprio_dim": 0, "action_dim": 0}
 
 

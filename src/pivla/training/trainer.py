@@ -34,7 +34,10 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from pivla import config as cfgmod
-from pivla.data.dataset import (
+from pivla.data.format import DatasetError, DatasetLayout, Episode
+from pivla.data.normalize import NormStats
+from pivla.data.read import dataset_layout, iter_dataset
+from pivla.data.samples import (
     ChunkDataset,
     augment_color,
     augment_shift,
@@ -46,9 +49,6 @@ from pivla.data.dataset import (
     resolve_inputs,
     split_episodes,
 )
-from pivla.data.datasets import dataset_layout, iter_dataset
-from pivla.data.format import DatasetError, DatasetLayout, Episode
-from pivla.data.normalize import NormStats
 from pivla.data.text import build_text_tokenizer, load_text_tokenizer
 from pivla.data.transforms import batch_to_tensors
 from pivla.model.cms import CMSModel
