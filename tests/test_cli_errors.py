@@ -8,7 +8,7 @@ import pytest
 
 from pivla.cli import main
 from pivla.cli.app import DEBUG_ENV
-from pivla.data.format import DatasetError
+from pivla.data.episode import DatasetError
 
 
 def test_a_user_error_is_one_line_and_debug_shows_the_exception(tmp_path, monkeypatch):

@@ -9,7 +9,7 @@ import pytest
 
 from pivla.control.calibrate import calibrate
 from pivla.control.executors import executor_config
-from pivla.data.format import write_episodes
+from pivla.data.hdf5 import write_episodes
 from pivla.data.read import read_dataset
 from pivla.envs.rollout import collect_episodes
 from pivla.envs.tabletop import make_env

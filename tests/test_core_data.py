@@ -2,7 +2,8 @@ import h5py
 import numpy as np
 import pytest
 
-from pivla.data.format import DatasetError, Episode, read_episodes, write_episodes
+from pivla.data.episode import DatasetError, Episode
+from pivla.data.hdf5 import read_episodes, write_episodes
 from pivla.data.normalize import ActionStats
 from pivla.data.read import read_dataset
 from pivla.data.samples import (
@@ -176,7 +177,8 @@ def test_gae_hand_computed_episode():
 def test_a_damaged_file_reads_or_fails_naming_itself(tmp_path):
     """Bytes overwritten anywhere in a file: reading it either works or raises DatasetError with the path,
     never a bare h5py OSError or KeyError."""
-    from pivla.data.format import DatasetError, read_episodes
+    from pivla.data.episode import DatasetError
+    from pivla.data.hdf5 import read_episodes
 
     good = write_episodes(tmp_path / "good.hdf5", [_episode(), _episode()]).read_bytes()
     rng = np.random.default_rng(0)
@@ -196,7 +198,8 @@ def test_a_damaged_file_reads_or_fails_naming_itself(tmp_path):
 
 @pytest.mark.parametrize("field", ["actions", "rewards", "ee_pos"])
 def test_a_nan_in_a_file_is_named_with_the_file_and_step(tmp_path, field):
-    from pivla.data.format import DatasetError, read_episodes
+    from pivla.data.episode import DatasetError
+    from pivla.data.hdf5 import read_episodes
 
     path = write_episodes(tmp_path / "a.hdf5", [_episode(), _episode()])
     with h5py.File(path, "r+") as f:

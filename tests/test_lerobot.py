@@ -15,7 +15,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from pivla.data.action_space import EE_DELTA
-from pivla.data.format import DatasetError, Episode, write_episodes
+from pivla.data.episode import DatasetError, Episode
+from pivla.data.hdf5 import write_episodes
 from pivla.data.lerobot import (
     ConvertConfig,
     LeRobotWriteConfig,

@@ -230,7 +230,7 @@ def test_a_task_that_often_fails_renders_only_its_successes(tmp_path, monkeypatc
     played again, rendered, only when it succeeds: the kept episodes are the same, every one with frames."""
     from types import SimpleNamespace
 
-    from pivla.data.format import Episode
+    from pivla.data.episode import Episode
     from pivla.envs import TaskSpec, collect
     from pivla.envs.rollout import episode_seed
 
@@ -289,7 +289,7 @@ def test_a_worker_whose_run_was_killed_stops(monkeypatch):
 def test_a_run_refuses_demonstrations_drawn_with_other_meshes(tmp_path):
     """Demonstrations drawn with full meshes (or before the setting existed) and a run that would validate and
     evaluate on simplified ones: refused, naming the file and both settings."""
-    from pivla.data.format import write_episodes
+    from pivla.data.hdf5 import write_episodes
     from pivla.data.synthetic import synthetic_episode
     from pivla.evaluation.libero import check_rendering
 

@@ -189,7 +189,8 @@ def test_action_conversion_moves_the_arm_and_gripper(env):
 @requires_libero
 def test_smoke_episode_into_dataset(env, tmp_path):
     """One short rendered episode through the env contract, stored in the dataset layout and read back."""
-    from pivla.data.format import Episode, read_episodes, write_episodes
+    from pivla.data.episode import Episode
+    from pivla.data.hdf5 import read_episodes, write_episodes
 
     obs, _ = env.reset(options={"init_state": 1})
     frames, actions = [], []

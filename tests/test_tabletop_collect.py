@@ -87,7 +87,7 @@ def test_episodes_do_not_depend_on_worker_count():
 def test_a_smaller_collection_is_the_first_episodes_of_a_larger_one(tmp_path):
     """Why the benchmark's Fig. 17 sets are slices of the full set: a task's file holds its first successful
     seeds in order (the expert misses its first grasp half the time, so failures are replaced too)."""
-    from pivla.data.format import read_episodes
+    from pivla.data.hdf5 import read_episodes
     from pivla.envs.collect import CollectConfig, collect_demos
 
     base = CollectConfig(out="", suite="pick_place", tasks="ball_left", seed_family="train", image_size=32, miss=0.5,

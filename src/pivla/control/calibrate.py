@@ -21,7 +21,7 @@ import numpy as np
 
 from pivla.control.contract import DEFAULT_ETA, BatchPolicy, Calibration
 from pivla.control.math import combine_uncertainty, prediction_uncertainty, surprise
-from pivla.data.format import Episode
+from pivla.data.episode import Episode
 
 
 @dataclass

@@ -12,7 +12,7 @@ import numpy as np
 from pivla.control.asynchronous import MOTION, ExecutionConfig, LinkActor
 from pivla.control.executors import BaseExecutor
 from pivla.control.latency import Latency, control_hz, parse_latency
-from pivla.data.format import Episode
+from pivla.data.episode import Episode
 from pivla.envs.rollout import run_episode as _run_actor_episode
 
 

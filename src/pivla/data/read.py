@@ -1,4 +1,4 @@
-"""Reading a dataset directory whatever its format: pivla's LIBERO-layout HDF5 files (``pivla.data.format``) or
+"""Reading a dataset directory whatever its format: pivla's LIBERO-layout HDF5 files (``pivla.data.hdf5``) or
 a LeRobot v3.0 dataset (``pivla.data.lerobot``, detected by its ``meta/`` folder)."""
 
 from __future__ import annotations
@@ -6,13 +6,8 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
-from pivla.data.format import (
-    DatasetLayout,
-    Episode,
-    dataset_files,
-    hdf5_layout,
-    iter_episodes,
-)
+from pivla.data.episode import DatasetLayout, Episode
+from pivla.data.hdf5 import dataset_files, hdf5_layout, iter_episodes
 from pivla.data.lerobot import is_lerobot, iter_lerobot, lerobot_layout
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pivla.data.action_space import EE_DELTA, ActionSpace
-from pivla.data.format import DatasetError, DatasetLayout, Episode
+from pivla.data.episode import DatasetError, DatasetLayout, Episode
 from pivla.data.normalize import ActionStats, NormStats, StandardStats
 from pivla.data.text import WordTokenizer
 from pivla.data.transforms import NormalizeActions, input_pipeline, proprio_vector

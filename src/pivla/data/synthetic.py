@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pivla.data.format import Episode, write_episodes
+from pivla.data.episode import Episode
+from pivla.data.hdf5 import write_episodes
 
 GOALS = {"left": (-1.0, 0.0), "right": (1.0, 0.0), "up": (0.0, -1.0), "down": (0.0, 1.0)}
 

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from pivla.data.format import DatasetError
+from pivla.data.episode import DatasetError
 from pivla.data.normalize import ActionStats, StandardStats
 from pivla.model.pixels import check_image, resize_images
 from pivla.model.tokenizer import encode as bin_actions

@@ -21,7 +21,8 @@ from typing import Annotated, Literal
 
 import tyro
 
-from pivla.data.format import Episode, read_episodes, write_episodes
+from pivla.data.episode import Episode
+from pivla.data.hdf5 import read_episodes, write_episodes
 from pivla.envs import TaskSpec, make_env, seeds, select_tasks
 from pivla.envs.backend import BackendConfig, check_backend
 from pivla.envs.libero import expert_actor

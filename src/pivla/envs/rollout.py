@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pivla.data.format import Episode
+from pivla.data.episode import Episode
 from pivla.envs.backend import BackendConfig, ray_map
 
 log = logging.getLogger(__name__)

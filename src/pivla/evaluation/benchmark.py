@@ -37,7 +37,7 @@ import tyro
 
 from pivla.control.calibrate import CalibrationConfig, calibrate
 from pivla.control.executors import CUTS, ExecutorConfig, config_to_dict, executor_config, first_cut
-from pivla.data.format import read_env_meta, read_episodes, write_episodes
+from pivla.data.hdf5 import read_env_meta, read_episodes, write_episodes
 from pivla.envs import select_tasks
 from pivla.envs.backend import BackendConfig
 from pivla.envs.collect import CollectConfig, collect_demos

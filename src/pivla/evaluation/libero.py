@@ -27,7 +27,7 @@ import tyro
 
 from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
-from pivla.data.format import read_env_meta
+from pivla.data.hdf5 import read_env_meta
 from pivla.envs import select_tasks
 from pivla.envs.backend import BackendConfig
 from pivla.envs.collect import CollectConfig, collect_demos

@@ -34,7 +34,7 @@ from pivla.control.executors import (
     make_executor,
 )
 from pivla.control.latency import parse_latency
-from pivla.data.format import read_episodes, write_episodes
+from pivla.data.hdf5 import read_episodes, write_episodes
 from pivla.envs import family, make_env, seeds, select_tasks
 from pivla.envs.backend import BackendConfig, check_backend, ray_map
 from pivla.envs.rollout import episode_seed

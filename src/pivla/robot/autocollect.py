@@ -25,7 +25,8 @@ import cv2
 import numpy as np
 
 from pivla import arm
-from pivla.data.format import Episode, write_episodes
+from pivla.data.episode import Episode
+from pivla.data.hdf5 import write_episodes
 from pivla.robot.env import RobotEnv, RobotEnvConfig
 
 log = logging.getLogger(__name__)

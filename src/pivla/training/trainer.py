@@ -34,7 +34,7 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from pivla import config as cfgmod
-from pivla.data.format import DatasetError, DatasetLayout, Episode
+from pivla.data.episode import DatasetError, DatasetLayout, Episode
 from pivla.data.normalize import NormStats
 from pivla.data.read import dataset_layout, iter_dataset
 from pivla.data.samples import (

@@ -1,4 +1,4 @@
-"""Episode files in the layout of LIBERO's official demonstration HDF5 files.
+"""pivla's HDF5 dataset: episode files in the layout of LIBERO's official demonstration HDF5 files.
 
 A dataset is a directory of ``.hdf5`` files. Each file holds::
 
@@ -20,80 +20,17 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from pivla.data.action_space import EE_DELTA, ActionSpace
+from pivla.data.episode import IMAGE_KEYS, PROPRIO_KEYS, STATE_KEY, DatasetError, DatasetLayout, Episode
 from pivla.io import atomic_path
 
-IMAGE_KEYS = ("agentview_rgb", "eye_in_hand_rgb")
-LOW_DIM_KEYS = ("ee_pos", "ee_ori", "gripper_states", "joint_states")
-# what a policy reads of pivla's and LIBERO's files unless told otherwise (the agent view first)
-PROPRIO_KEYS = ("ee_pos", "ee_ori", "gripper_states")
-STATE_KEY = "state"  # the one key of a state vector without pivla's per-key names (LeRobot's observation.state)
 REQUIRED_DEMO_KEYS = ("actions", "rewards", "dones", "obs")  # cameras: whichever a reader asks for
 ACTION_SPACE_ATTR = "action_space"
-
-
-class DatasetError(ValueError):
-    """A dataset file is unreadable, truncated, or does not follow the layout; the message names both."""
-
-
-@dataclass(frozen=True)
-class DatasetLayout:
-    """What a dataset offers a policy, read without its pictures: ``cameras`` (image keys, the agent view
-    first) and ``proprio`` (keys) a policy reads unless told otherwise, ``vectors`` (every low-dim key with
-    its length) and the ``action_space``."""
-
-    cameras: tuple[str, ...]
-    proprio: tuple[str, ...]
-    vectors: dict[str, int]
-    action_space: ActionSpace
-
-
-@dataclass
-class Episode:
-    """One demonstration or rollout, time-major arrays of equal length T."""
-
-    actions: np.ndarray
-    obs: dict[str, np.ndarray]
-    instruction: str
-    rewards: np.ndarray | None = None
-    dones: np.ndarray | None = None
-    success: bool = True
-    source: str = "expert"
-    meta: dict = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        self.actions = np.asarray(self.actions, dtype=np.float32)
-        T = len(self.actions)
-        if self.actions.ndim != 2 or self.actions.shape[1] < 1:
-            raise DatasetError(f"actions must have shape (T, D), got {self.actions.shape}")
-        if self.rewards is None:
-            self.rewards = np.zeros(T, np.float32)
-            if self.success and T:
-                self.rewards[-1] = 1.0
-        if self.dones is None:
-            self.dones = np.zeros(T, np.uint8)
-            if T:
-                self.dones[-1] = 1
-        self.rewards = np.asarray(self.rewards, dtype=np.float32)
-        self.dones = np.asarray(self.dones, dtype=np.uint8)
-        for name, arr in [("rewards", self.rewards), ("dones", self.dones), *self.obs.items()]:
-            if len(arr) != T:
-                raise DatasetError(f"{name} has {len(arr)} steps but actions have {T}")
-        numeric = [("actions", self.actions), ("rewards", self.rewards),
-                   *((k, v) for k, v in self.obs.items() if np.issubdtype(np.asarray(v).dtype, np.floating))]
-        for name, arr in numeric:  # a NaN here would surface later as a NaN loss, far from the file
-            finite = np.isfinite(np.asarray(arr)).reshape(T, -1).all(axis=1)
-            if not finite.all():
-                raise DatasetError(f"{name} holds NaN or inf (first at step {int(np.argmin(finite))})")
-
-    def __len__(self) -> int:
-        return len(self.actions)
 
 
 def write_episodes(path: str | Path, episodes: list[Episode], env_meta: dict | None = None,
