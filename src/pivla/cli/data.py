@@ -1,11 +1,11 @@
-"""``pivla collect``, ``pivla export-video`` and ``pivla data convert``."""
+"""``pivla collect``, ``pivla export-video``, ``pivla data convert`` and ``pivla data view``."""
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 import tyro
@@ -72,7 +72,8 @@ class ExportVideoConfig:
 
 
 def export_video(cfg: ExportVideoConfig) -> int:
-    from pivla.data.format import DatasetError, dataset_files, read_episodes
+    from pivla.data.episode import DatasetError
+    from pivla.data.hdf5 import dataset_files, read_episodes
     from pivla.io import write_mp4
 
     try:
@@ -100,7 +101,7 @@ def export_video(cfg: ExportVideoConfig) -> int:
 
 
 def convert(cfg: ConvertConfig) -> int:
-    from pivla.data.format import DatasetError
+    from pivla.data.episode import DatasetError
     from pivla.data.lerobot import run_convert
 
     try:
@@ -109,4 +110,31 @@ def convert(cfg: ConvertConfig) -> int:
         raise SystemExit(f"pivla data convert: {e}") from e
     print(f"{res.source_format} -> {cfg.to}: {res.episodes} episodes, {res.frames} frames at {res.fps} fps "
           f"-> {res.dst}")
+    return 0
+
+
+@dataclass
+class ViewConfig:
+    """One episode of a dataset: logged to Rerun when rerun-sdk is installed (pip install 'pivla[viz]'), else an
+    MP4 of its cameras and a PNG plot of its actions and state."""
+
+    dataset: tyro.conf.Positional[str]
+    """Dataset directory (LeRobot v3.0, or pivla's HDF5 files)."""
+    episode: int = 0
+    """Index of the episode."""
+    viewer: Literal["auto", "rerun", "files"] = "auto"
+    """rerun: log to Rerun; files: the MP4 and the PNG; auto: Rerun when installed."""
+    out: str | None = None
+    """Folder of the MP4 and PNG (or the .rrd with --no-spawn) (default: <dataset>-view beside the dataset)."""
+    spawn: bool = True
+    """Rerun: show the episode in a spawned viewer; --no-spawn saves an .rrd recording instead."""
+
+
+def view(cfg: ViewConfig) -> int:
+    from pivla.data.view import view as view_episode
+
+    written = view_episode(cfg.dataset, cfg.episode, cfg.out, cfg.viewer, cfg.spawn)
+    for kind, path in written.items():
+        if path is not None:
+            print(f"{kind}: {path}")
     return 0

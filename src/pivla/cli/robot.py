@@ -1,46 +1,43 @@
-"""``pivla robot ...``: the real arm (or its simulated twin with ``--sim``) from the terminal.
+"""``pivla robot ...``: the arm (the pivla arm, its simulated twin with ``--sim``, or an SO-101 with ``--robot so101``)
+from the terminal. This module parses; what the commands do lives in ``pivla.robot`` (factory, keyboard,
+teleoperation, recording, replay, calibrate, run).
 
-Subcommands: simboard, simbus, find-port, check, calibrate-servos, home, teleop, record, run, repeatability,
-autocollect. docs/robot.md walks through them in the order a maker uses them; ``check`` and ``find-port``
-also serve the SO-101 (``--robot so101``).
+Subcommands: simboard, simbus, find-port, check, calibrate, calibrate-servos, home, teleoperate, record, replay,
+run, repeatability, autocollect. docs/robot.md walks through them in the order a maker uses them.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import select
-import sys
-import termios
 import time
-import tty
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Annotated, Literal
 
-import numpy as np
 import tyro
 
 from pivla.control.executors import AURDConfig, ExecutorConfig
 
 log = logging.getLogger("pivla.robot")
 
-TELEOP_KEYS = {"w": (0, 1), "s": (0, -1), "a": (1, 1), "d": (1, -1), "r": (2, 1), "f": (2, -1),
-               "q": (5, 1), "e": (5, -1)}
-TELEOP_HELP = ("w/s: +x/-x  a/d: +y/-y  r/f: up/down  q/e: yaw  space: gripper  n: episode ok  b: episode failed  "
-               "x: quit")
+Robot = Literal["pivla-arm", "so101"]
 
 
 @dataclass
 class ArmConfig:
-    """Which arm: a serial one, or the simulated twin."""
+    """Which arm: the pivla arm on a serial board or its simulated twin, or an SO-101 on its servo bus."""
 
+    robot: Robot = "pivla-arm"
+    """The pivla arm (or its twin with --sim), or an SO-101 (six Feetech servos, LeRobot's arm)."""
     port: str | None = None
-    """Serial port of the arm's Uno (e.g. /dev/ttyACM0)."""
+    """Serial port of the arm's Uno, or of the SO-101's servo bus (e.g. /dev/ttyACM0)."""
     sim: bool = False
-    """Use the simulated twin instead of a serial arm."""
-    calibration: str = "arm_calibration.json"
-    """Per-arm servo calibration file (JSON)."""
+    """Use the pivla arm's simulated twin instead of a serial arm."""
+    calibration: str | None = None
+    """The arm's calibration file (default: arm_calibration.json for the pivla arm; for the SO-101 its
+    LeRobot file <arm id>.json in LeRobot's calibration folder)."""
+    arm_id: str | None = None
+    """SO-101: the arm's id, which names its LeRobot calibration file."""
     suite: str = "pick_place"
     """Twin suite (with --sim)."""
     task: str = "0"
@@ -51,56 +48,47 @@ class ArmConfig:
 
 @dataclass
 class CameraConfig:
-    """The cameras the policy reads."""
+    """The cameras the policy reads (or a recording stores)."""
 
     camera: str = "0"
-    """OpenCV camera index or URL for agentview_rgb."""
+    """OpenCV camera index or URL of the main camera (the pivla arm's agentview_rgb, the SO-101's front);
+    none for no camera."""
     wrist_camera: str | None = None
-    """OpenCV camera for eye_in_hand_rgb (optional)."""
-    image_size: int = 80
-    """Picture side in px (the policy's)."""
+    """OpenCV camera of the wrist (eye_in_hand_rgb; the SO-101's wrist), optional."""
+    image_size: int | None = None
+    """Square pictures of this side in px (default: 80, the policy's, on the pivla arm; the camera's own frame
+    on the SO-101)."""
 
 
-def make_robot(arm: ArmConfig):
-    """A SerialRobot (``--port``) or the twin (``--sim``)."""
-    if arm.sim:
-        from pivla.robot.sim import SimRobot
-
-        task = int(arm.task) if str(arm.task).isdigit() else arm.task
-        return SimRobot(arm.suite, task, seed=arm.seed)
-    if not arm.port:
-        raise SystemExit("give --port PORT for the serial arm, or --sim for the twin")
-    from pivla.robot.calibration import ArmCalibration
-    from pivla.robot.link import Board
-    from pivla.robot.robot import SerialRobot
-    from pivla.robot.safety import SafetyLayer
-
-    calib = ArmCalibration.load(arm.calibration)
-    return SerialRobot(Board.open(arm.port), calib, SafetyLayer(calib))
-
-
-def make_cameras(arm: ArmConfig, cams: CameraConfig, robot) -> dict:
-    if arm.sim:
-        from pivla.robot.sim import SimCamera
-
-        return {k: SimCamera(robot, k, cams.image_size) for k in ("agentview_rgb", "eye_in_hand_rgb")}
-    from pivla.robot.robot import OpenCVCamera
-
-    dev = lambda s: int(s) if str(s).isdigit() else s  # noqa: E731
-    out = {"agentview_rgb": OpenCVCamera(dev(cams.camera), cams.image_size)}
-    if cams.wrist_camera is not None:
-        out["eye_in_hand_rgb"] = OpenCVCamera(dev(cams.wrist_camera), cams.image_size)
-    return out
+def _calibration(arm: ArmConfig) -> str | None:
+    if arm.calibration is None and arm.robot == "pivla-arm":
+        return "arm_calibration.json"
+    return arm.calibration
 
 
 def _rig(arm: ArmConfig, cams: CameraConfig | None = None, instruction: str = "", **options):
     """The arm, its cameras (with ``cams``) and its env (``pivla.robot.factory.open_rig``)."""
     from pivla.robot.factory import open_rig
 
-    camera = dict(camera=cams.camera, wrist_camera=cams.wrist_camera, image_size=cams.image_size) if cams else {}
-    return open_rig("pivla-arm", port=arm.port, sim=arm.sim, calibration=arm.calibration, suite=arm.suite,
-                    task=arm.task, seed=arm.seed, cameras=cams is not None, instruction=instruction, **camera,
-                    **options)
+    camera = {}
+    if cams is not None:
+        camera = dict(camera=None if cams.camera.lower() == "none" else cams.camera, wrist_camera=cams.wrist_camera,
+                      image_size=cams.image_size)
+    return open_rig(arm.robot, port=arm.port, sim=arm.sim, calibration=_calibration(arm), arm_id=arm.arm_id,
+                    suite=arm.suite, task=arm.task, seed=arm.seed, cameras=cams is not None, instruction=instruction,
+                    **camera, **options)
+
+
+def _pivla_arm_only(arm: ArmConfig, what: str) -> None:
+    if arm.robot != "pivla-arm":
+        raise ValueError(f"{what} drives the pivla arm (or its twin with --sim), not an SO-101")
+
+
+def _keys(arm: ArmConfig):
+    """Key presses from the terminal: polled when the env paces the loop (a real arm), every 0.1 s on the twin."""
+    from pivla.robot.keyboard import terminal_keys
+
+    return terminal_keys(0.1 if arm.sim else 0.002)
 
 
 @dataclass
@@ -234,6 +222,8 @@ class FindPortConfig:
 
     settle_s: float = 0.5
     """Wait this long after Enter before listing the ports again."""
+    robot: Robot = "pivla-arm"
+    """Whose cable: the pivla arm's board or the SO-101's servo bus adapter (the search is the same)."""
 
 
 def find_port(cfg: FindPortConfig) -> int:
@@ -243,7 +233,43 @@ def find_port(cfg: FindPortConfig) -> int:
         port = find_port(input, cfg.settle_s)
     except PortNotFound as exc:
         raise SystemExit(str(exc)) from exc
-    print(f"the arm's port is {port}; plug the cable back in")
+    print(f"the {'SO-101' if cfg.robot == 'so101' else 'arm'}'s port is {port}; plug the cable back in")
+    return 0
+
+
+@dataclass
+class CalibrateCommand:
+    """Calibrate the arm. The pivla arm: write its servo calibration file and program its limits and home pose
+    into the board (--jog: jog each joint to its zero first). The SO-101: LeRobot's guided procedure on the
+    bus (the middle of the range, then every joint through its range), written to the servos and to LeRobot's
+    calibration file of the arm's id."""
+
+    arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
+    jog: bool = False
+    """The pivla arm: interactively jog each joint to its zero."""
+
+
+def calibrate(cmd: CalibrateCommand) -> int:
+    arm = cmd.arm
+    if arm.robot == "so101":
+        from pivla.robot.calibrate import calibrate_so101
+        from pivla.robot.feetech import BusConfig, FeetechBus
+
+        if not arm.port or not arm.arm_id:
+            raise ValueError("calibrating an SO-101 needs its --port and the --arm-id that names its calibration")
+        with FeetechBus(BusConfig(arm.port)) as bus:
+            calibrate_so101(bus, arm.arm_id, _keys(arm), arm.calibration)
+        return 0
+    from pivla.robot.calibrate import calibrate_pivla_arm
+
+    board = None
+    if not arm.sim:
+        if not arm.port:
+            raise ValueError("give --port PORT for the serial arm, or --sim for the twin")
+        from pivla.robot.link import Board
+
+        board = Board.open(arm.port)
+    calibrate_pivla_arm(_calibration(arm), board, cmd.jog, _keys(arm) if cmd.jog else ())
     return 0
 
 
@@ -257,85 +283,17 @@ class CalibrateServosCommand:
 
 
 def calibrate_servos(cmd: CalibrateServosCommand) -> int:
-    from pivla.robot.calibration import ArmCalibration
-
-    path = Path(cmd.arm.calibration)
-    calib = ArmCalibration.load(path) if path.exists() else ArmCalibration.nominal(path.stem)
-    if cmd.arm.sim:
-        calib.save(path)
-        print(f"wrote {path} (the twin uses the nominal calibration)")
-        return 0
-    if not cmd.arm.port:
-        raise SystemExit("give --port PORT for the serial arm, or --sim for the twin")
-    from pivla.robot.link import Board
-    from pivla.robot.robot import SerialRobot
-    from pivla.robot.safety import SafetyLayer
-
-    board = Board.open(cmd.arm.port)
-    if cmd.jog:
-        calib = jog_zero_offsets(board, calib, _keys())
-    robot = SerialRobot(board, calib, SafetyLayer(calib), program_limits=True)
-    for lim in calib.board_limits(robot.home_q):
-        got = board.limits(lim.channel)
-        if got != lim:
-            raise SystemExit(f"channel {lim.channel}: board kept {got}, expected {lim}")
-    calib.save(path)
-    print(f"wrote {path}; board limits programmed: "
-          + ", ".join(f"ch{limit.channel} {limit.min_us}-{limit.max_us} (home {limit.home_us})"
-                      for limit in calib.board_limits(robot.home_q)))
-    robot.close()
-    return 0
-
-
-def jog_zero_offsets(board, calib, keys):
-    """Interactive: for each joint, jog the servo until the joint is at the model's zero, then Enter.
-
-    Keys: '+'/'-' 10 us, ']'/'[' 50 us, 'r' reverse direction, Enter accept, 's' skip. Moves stay inside
-    the board's current limits (the firmware refuses anything else).
-    """
-    from pivla import arm
-
-    st = board.state()
-    pulses = list(st.targets_us)
-    steps = {"+": 10, "-": -10, "]": 50, "[": -50}
-    for ch, name in enumerate(arm.JOINT_NAMES):
-        print(f"joint {name}: jog to its zero (arm straight up), Enter to accept, s to skip", flush=True)
-        for key in keys:
-            if key in steps:
-                lim = board.limits(ch)
-                pulses[ch] = min(max(pulses[ch] + steps[key], lim.min_us), lim.max_us)
-                board.set_targets(pulses, 300)
-            elif key == "r":
-                calib.joints[ch].direction *= -1
-                print(f"  direction now {calib.joints[ch].direction:+d}", flush=True)
-            elif key in ("\r", "\n"):
-                calib.joints[ch].zero_us = float(pulses[ch])
-                print(f"  zero_us = {pulses[ch]}", flush=True)
-                break
-            elif key == "s":
-                break
-            board.state()  # keeps the watchdog fed while the user thinks
-    calib.validate()
-    return calib
-
-
-def _keys():
-    """Single key presses from the terminal (raw mode), '' when none arrived within 0.1 s."""
-    if not sys.stdin.isatty():
-        raise SystemExit("this command needs an interactive terminal")
-    fd = sys.stdin.fileno()
-    old = termios.tcgetattr(fd)
-    tty.setcbreak(fd)
-    try:
-        while True:
-            ready, _, _ = select.select([sys.stdin], [], [], 0.1)
-            yield sys.stdin.read(1) if ready else ""
-    finally:
-        termios.tcsetattr(fd, termios.TCSADRAIN, old)
+    """The pivla arm's calibration (``pivla robot calibrate`` without --robot so101)."""
+    _pivla_arm_only(cmd.arm, "calibrate-servos")
+    return calibrate(CalibrateCommand(cmd.arm, cmd.jog))
 
 
 def home(cmd: ArmCommand) -> int:
-    robot = make_robot(cmd.arm)
+    from pivla.robot.factory import open_robot
+
+    _pivla_arm_only(cmd.arm, "home")
+    robot = open_robot(port=cmd.arm.port, sim=cmd.arm.sim, calibration=_calibration(cmd.arm), suite=cmd.arm.suite,
+                       task=cmd.arm.task, seed=cmd.arm.seed)
     try:
         st = robot.home()
         print(f"home: q={st.q.round(3).tolist()} ee={st.ee_pos.round(3).tolist()}")
@@ -344,29 +302,33 @@ def home(cmd: ArmCommand) -> int:
     return 0
 
 
-def teleop_actions(keys, gripper: float = -1.0):
-    """Maps key presses to (action, event): 7-D EE-delta actions at half speed, events 'ok'/'fail'/'quit'."""
-    for key in keys:
-        a = np.zeros(7)
-        event = None
-        if key in TELEOP_KEYS:
-            axis, sign = TELEOP_KEYS[key]
-            a[axis] = 0.5 * sign
-        elif key == " ":
-            gripper = -gripper
-        elif key == "n":
-            event = "ok"
-        elif key == "b":
-            event = "fail"
-        elif key == "x":
-            event = "quit"
-        a[6] = gripper
-        yield a, event
+@dataclass
+class TeleoperateCommand:
+    """Jog the arm from the keyboard: the pivla arm's tool (end-effector deltas), the SO-101's joints."""
+
+    arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
+    step_deg: float = 2.0
+    """SO-101: degrees a key press moves a joint."""
+    step_gripper: float = 5.0
+    """SO-101: gripper percent a key press moves it."""
+
+
+def teleoperate(cmd: TeleoperateCommand) -> int:
+    from pivla.robot.teleoperation import help_line, jog_for
+    from pivla.robot.teleoperation import teleoperate as jog_loop
+
+    with _rig(cmd.arm, max_steps=10**9) as rig:
+        jog = jog_for(rig.env, cmd.step_deg, cmd.step_gripper)
+        print(help_line(jog, recording=False), flush=True)
+        steps = jog_loop(rig.env, jog, _keys(cmd.arm))
+    print(f"{steps} steps")
+    return 0
 
 
 @dataclass
 class RecordCommand:
-    """Teleoperate and record demonstrations (LIBERO layout)."""
+    """Teleoperate and record demonstrations into a LeRobot v3.0 dataset (right/n keeps an episode, left/r redoes
+    it, esc/q stops); each kept episode is saved at once, and recording into the same folder continues it."""
 
     out: str
     """Dataset directory."""
@@ -374,62 +336,55 @@ class RecordCommand:
     """The task's instruction, stored with every episode."""
     arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
     cameras: Annotated[CameraConfig, tyro.conf.arg(name="")] = field(default_factory=CameraConfig)
-
-
-def _teleop_loop(arm: ArmConfig, record: RecordCommand | None = None) -> int:
-    from pivla.robot.env import RobotEnv, RobotEnvConfig
-
-    robot = make_robot(arm)
-    cams = make_cameras(arm, record.cameras, robot) if record is not None else {}
-    instruction = record.instruction if record is not None else ""
-    env = RobotEnv(robot, cams, instruction, RobotEnvConfig(realtime=not arm.sim, max_steps=10**9))
-    episodes = []
-    print(TELEOP_HELP, flush=True)
-    try:
-        obs, _ = env.reset()
-        steps: list[tuple[dict, np.ndarray]] = []
-        for action, event in teleop_actions(_keys()):
-            if event == "quit":
-                break
-            if event in ("ok", "fail"):
-                if record is not None and steps:
-                    episodes.append(_episode(steps, instruction, event == "ok"))
-                    print(f"episode {len(episodes)}: {len(steps)} steps, success={event == 'ok'}", flush=True)
-                steps = []
-                obs, _ = env.reset()
-                continue
-            nxt, *_ = env.step(action)
-            if record is not None:
-                steps.append((obs, action))
-            obs = nxt
-    finally:
-        robot.stop()
-        env.close()
-        robot.close()
-    if record is not None and episodes:
-        from pivla.data.format import write_episodes
-
-        target = Path(record.out) / f"{time.strftime('%Y%m%d_%H%M%S')}.hdf5"
-        path = write_episodes(target, episodes, env_meta={"env": "real_arm" if not arm.sim else "tabletop_twin"})
-        print(f"wrote {len(episodes)} episodes to {path}")
-    return 0
-
-
-def _episode(steps, instruction: str, success: bool):
-    from pivla.data.format import Episode
-
-    keys = [k for k in steps[0][0] if k != "instruction"]
-    obs = {k: np.stack([o[k] for o, _ in steps]) for k in keys}
-    return Episode(np.stack([a for _, a in steps]).astype(np.float32), obs, instruction, success=success,
-                   source="teleop")
-
-
-def teleop(cmd: ArmCommand) -> int:
-    return _teleop_loop(cmd.arm)
+    episodes: int = 0
+    """Stop after keeping this many episodes (0: when stopped)."""
+    episode_time_s: float = 0.0
+    """Keep an episode once it is this long (0: when a key keeps it)."""
+    fps: float | None = None
+    """Frames per second (default: the arm's control rate: 10 on the pivla arm, 30 on the SO-101)."""
+    vcodec: Literal["libx264", "libsvtav1"] = "libx264"
+    """Video codec of the cameras: H.264, or AV1 as lerobot itself writes."""
+    step_deg: float = 2.0
+    """SO-101: degrees a key press moves a joint."""
+    step_gripper: float = 5.0
+    """SO-101: gripper percent a key press moves it."""
 
 
 def record(cmd: RecordCommand) -> int:
-    return _teleop_loop(cmd.arm, cmd)
+    from pivla.robot.recording import record as record_loop
+    from pivla.robot.teleoperation import help_line, jog_for
+
+    with _rig(cmd.arm, cmd.cameras, cmd.instruction, max_steps=10**9, fps=cmd.fps) as rig:
+        jog = jog_for(rig.env, cmd.step_deg, cmd.step_gripper)
+        print(help_line(jog, recording=True), flush=True)
+        steps = round(cmd.episode_time_s * rig.env.control_hz) if cmd.episode_time_s else 0
+        res = record_loop(rig.env, jog, _keys(cmd.arm), cmd.out, cmd.instruction, episodes=cmd.episodes,
+                          episode_steps=steps, fps=cmd.fps, vcodec=cmd.vcodec)
+    print(f"kept {res.kept} episodes ({res.frames} frames, {res.redone} redone); {res.root} holds {res.episodes}")
+    return 0
+
+
+@dataclass
+class ReplayCommand:
+    """Send a recorded episode's actions to the arm at the dataset's fps, each through the arm's safety layer."""
+
+    dataset: str
+    """LeRobot dataset directory (as `pivla robot record` writes it)."""
+    episode: int = 0
+    """Index of the episode."""
+    arm: Annotated[ArmConfig, tyro.conf.arg(name="")] = field(default_factory=ArmConfig)
+
+
+def replay(cmd: ReplayCommand) -> int:
+    from pivla.robot.replay import read_episode_actions
+    from pivla.robot.replay import replay as replay_loop
+
+    episode = read_episode_actions(cmd.dataset, cmd.episode)
+    with _rig(cmd.arm, max_steps=10**9, fps=episode.fps) as rig:
+        sent = replay_loop(rig.env, episode)
+    print(f"replayed episode {cmd.episode} of {cmd.dataset}: {len(sent)} actions at {episode.fps} fps "
+          f"({episode.instruction!r})")
+    return 0
 
 
 @dataclass
@@ -476,9 +431,12 @@ class RepeatabilityCommand:
 
 
 def repeatability(cmd: RepeatabilityCommand) -> int:
+    from pivla.robot.factory import open_robot
     from pivla.robot.repeatability import run_repeatability
 
-    robot = make_robot(cmd.arm)
+    _pivla_arm_only(cmd.arm, "repeatability")
+    robot = open_robot(port=cmd.arm.port, sim=cmd.arm.sim, calibration=_calibration(cmd.arm), suite=cmd.arm.suite,
+                       task=cmd.arm.task, seed=cmd.arm.seed)
     try:
         report = run_repeatability(robot, cmd.repeats, cmd.targets, seed=cmd.arm.seed)
     finally:
@@ -503,6 +461,7 @@ class AutocollectCommand:
 
 
 def autocollect(cmd: AutocollectCommand) -> int:
+    _pivla_arm_only(cmd.arm, "autocollect")
     if not cmd.arm.sim:
         raise SystemExit("autocollect runs on the twin (--sim); on the real arm use the Collector class with "
                          "a SerialRobot, an OpenCVCamera and printed markers (docs/robot.md)")

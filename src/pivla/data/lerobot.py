@@ -40,18 +40,8 @@ import pyarrow.parquet as pq
 import tyro
 
 from pivla.data.action_space import EE_DELTA, ActionSpace, infer_action_space
-from pivla.data.format import (
-    PROPRIO_KEYS,
-    STATE_KEY,
-    DatasetError,
-    DatasetLayout,
-    Episode,
-    dataset_files,
-    hdf5_action_space,
-    read_env_meta,
-    read_episodes,
-    write_episodes,
-)
+from pivla.data.episode import PROPRIO_KEYS, STATE_KEY, DatasetError, DatasetLayout, Episode
+from pivla.data.hdf5 import dataset_files, hdf5_action_space, read_env_meta, read_episodes, write_episodes
 from pivla.io import atomic_dir
 
 CODEBASE_VERSION = "v3.0"
@@ -98,6 +88,10 @@ class LeRobotWriteConfig:
     state_keys: tuple[str, ...] | None = None
     """Low-dim keys concatenated, in order, into observation.state (default: those of ee_pos, ee_ori,
     gripper_states present); every other low-dim key gets its own observation.<key> feature."""
+    state_names: tuple[str, ...] | None = None
+    """Names of observation.state's dimensions (default: KEY.0, KEY.1, ... per state key, which reading splits
+    back into the keys; other names, such as LeRobot's SO-101 ``shoulder_pan.pos`` ..., read back as one key
+    ``state``)."""
     vcodec: Literal["libx264", "libsvtav1"] = "libx264"
     """Video codec: H.264, or AV1 as lerobot itself writes."""
     crf: int = 18
@@ -287,6 +281,7 @@ class _Writer:
         self.features: dict[str, dict] | None = None
         self.state_keys: tuple[str, ...] = ()
         self.extra_keys: tuple[str, ...] = ()
+        self.dims: dict[str, int] = {}  # low-dim key -> its dimension, fixed by the first episode
         self.videos: dict[str, _VideoSink] = {}
         self.data = _FileSeq(cfg.data_files_size_in_mb * MB, cfg.episodes_per_file, cfg.chunks_size)
         self.data_writer: pq.ParquetWriter | None = None
@@ -313,8 +308,14 @@ class _Writer:
                                    "height and width")
             features[IMAGE_PREFIX + key] = {"dtype": "video", "shape": list(arr.shape[1:]), "names": IMAGE_NAMES}
             self.videos[key] = _VideoSink(self.root, IMAGE_PREFIX + key, self.cfg, arr.shape[1:])
+        self.dims = {key: arr.shape[1] for key, arr in low.items()}
         if self.state_keys:
             names = [f"{k}.{i}" for k in self.state_keys for i in range(low[k].shape[1])]
+            if self.cfg.state_names is not None:
+                if len(self.cfg.state_names) != len(names):
+                    raise DatasetError(f"{len(self.cfg.state_names)} state names for the {len(names)} dimensions of "
+                                       f"the state keys {list(self.state_keys)}")
+                names = list(self.cfg.state_names)
             features[STATE] = {"dtype": "float32", "shape": [len(names)], "names": names}
         for key in self.extra_keys:
             dim = low[key].shape[1]
@@ -337,11 +338,9 @@ class _Writer:
                 raise DatasetError(f"image {key!r} is {arr.shape[1:]}, the first episode's is "
                                    f"{self.videos[key].shape}")
         for key, arr in low.items():
-            feature = STATE if key in self.state_keys else OBS_PREFIX + key
-            names = self.features[feature]["names"]
-            if sum(n.rsplit(".", 1)[0] == key for n in names) != arr.shape[1]:
-                raise DatasetError(f"observation {key!r} has {arr.shape[1]} dims, the first episode's has a "
-                                   "different number")
+            if arr.shape[1] != self.dims[key]:
+                raise DatasetError(f"observation {key!r} has {arr.shape[1]} dims, the first episode's has "
+                                   f"{self.dims[key]}")
 
     def add(self, ep: Episode) -> None:
         if len(ep) == 0:
@@ -805,9 +804,11 @@ class _DataFiles:
         self.ranges = {int(episodes[s]): (int(s), int(t)) for s, t in zip(starts, stops)}
 
 
-def iter_lerobot(root: str | Path, obs_keys: tuple[str, ...] | None = None) -> Iterator[Episode]:
+def iter_lerobot(root: str | Path, obs_keys: tuple[str, ...] | None = None,
+                 episodes: Iterable[int] | None = None) -> Iterator[Episode]:
     """The episodes of a LeRobot v3.0 dataset in episode order, decoded one at a time (each data and video
-    file is read once). ``obs_keys`` limits (and requires) the observation keys, as in ``read_episodes``."""
+    file is read once). ``obs_keys`` limits (and requires) the observation keys, as in ``read_episodes``;
+    ``episodes`` limits the episodes to those indices (an index the dataset lacks is an error)."""
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset directory does not exist")
@@ -819,6 +820,12 @@ def iter_lerobot(root: str | Path, obs_keys: tuple[str, ...] | None = None) -> I
     lerobot_action_space(root, info)
     tasks = _read_tasks(root)
     rows = _read_episode_rows(root)
+    if episodes is not None:
+        wanted = sorted(set(int(e) for e in episodes))
+        missing = [e for e in wanted if not 0 <= e < len(rows)]
+        if missing:
+            raise DatasetError(f"{root} has episodes 0..{len(rows) - 1}, not {missing}")
+        rows = [rows[e] for e in wanted]
     plan = _plan(root, features, obs_keys)
     names = [ACTION, "episode_index", "frame_index", "task_index",
              *(n for n in (REWARD, DONE, SUCCESS) if n in features),

@@ -57,6 +57,10 @@ class RobotEnv(gym.Env):
         self._opening = 1.0
         self._next_t = 0.0
 
+    @property
+    def control_hz(self) -> float:
+        return float(self.config.control_hz)
+
     def observe(self, state: RobotState | None = None) -> dict[str, Any]:
         st = state or self.robot.read()
         obs: dict[str, Any] = {key: cam.read() for key, cam in self.cameras.items()}

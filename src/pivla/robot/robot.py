@@ -171,9 +171,10 @@ def square_resize(frame: np.ndarray, size: int) -> np.ndarray:
 
 
 class OpenCVCamera(Camera):
-    """A USB camera through OpenCV; frames are centre-cropped and resized to ``size`` x ``size`` RGB."""
+    """A USB camera through OpenCV; frames are centre-cropped and resized to ``size`` x ``size`` RGB (``size``
+    None: the camera's own frames, as LeRobot records them)."""
 
-    def __init__(self, device: int | str = 0, size: int = 128) -> None:
+    def __init__(self, device: int | str = 0, size: int | None = 128) -> None:
         self.device, self.size = device, size
         self._cap = cv2.VideoCapture(device)
         if not self._cap.isOpened():
@@ -183,7 +184,8 @@ class OpenCVCamera(Camera):
         ok, frame = self._cap.read()
         if not ok or frame is None:
             raise RuntimeError(f"camera {self.device!r} returned no frame")
-        return square_resize(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB), self.size)
+        rgb = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+        return rgb if self.size is None else square_resize(rgb, self.size)
 
     def close(self) -> None:
         self._cap.release()

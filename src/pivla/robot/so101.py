@@ -323,6 +323,19 @@ class SO101:
             except F.BusError as exc:
                 log.error("SO-101 %r: could not %s the arm (%s)", self.calibration.arm_id, action, exc)
 
+    def stop(self) -> None:
+        """Holds the arm where it stands (goal := present position); never raises: a bus that fails here trips the
+        arm, which then holds or releases as configured."""
+        with self.bus.lock:
+            if self.fault is not None:
+                return
+            try:
+                ticks = self.calibration.clamp(self.read_ticks())
+                self._send(ticks)
+                self._goal = self.calibration.to_units(ticks)
+            except F.BusError:
+                pass  # read_ticks / _send tripped the arm and logged the fault
+
     def resume(self) -> None:
         """Clears a fault once the six servos answer again, and re-enables torque where the arm stands."""
         with self.bus.lock:
