@@ -15,7 +15,7 @@ import numpy as np
 
 from pivla.data.action_space import EE_DELTA, ActionSpace
 
-# Eq. 13's weight of U_act in U when nothing was calibrated (METHOD.md "AURD")
+# Eq. 13's weight of U_act in U when nothing was calibrated (docs/method.md, "AURD")
 DEFAULT_ETA = 0.7
 
 

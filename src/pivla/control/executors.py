@@ -124,7 +124,7 @@ class AURDConfig:
     eta: float | None = None
     """Weight of U_act in U, Eq. 14 (default: calibrated, else 0.7)."""
     check: Literal["before", "after"] = "before"
-    """Test step k before executing it (METHOD.md), or after (the paper's literal order; never pauses)."""
+    """Test step k before executing it (docs/method.md), or after (the paper's literal order; never pauses)."""
     horizon: int | None = None
     """Nominal horizon (default: the policy's H)."""
     max_pauses: int = 3
@@ -327,7 +327,7 @@ class AdaHorizonExecutor(BaseExecutor):
 
 
 class AURDExecutor(BaseExecutor):
-    """PI-VLA's Active Uncertainty-Resolving Decider (Algorithm 1, METHOD.md "AURD").
+    """PI-VLA's Active Uncertainty-Resolving Decider (Algorithm 1, docs/method.md "AURD").
 
     Before executing plan step k (``check="before"``) it forms U = eta * U_act[k] + (1 - eta) * U_pred,
     U_pred being the newest prediction error ||Enc(o_{t+k}) - z_hat_{t+k}|| (0 for k = 0), and

@@ -82,7 +82,7 @@ def decide_horizon(u: np.ndarray, values: np.ndarray, tau_low: float, tau_high: 
                    check: str = "before") -> tuple[int, str]:
     """AURD's executed horizon for a plan whose uncertainties ``u`` and values are known for each step.
 
-    ``check="before"`` (default, METHOD.md): step k is tested before it is executed; a triggered test
+    ``check="before"`` (default, docs/method.md "AURD"): step k is tested before it is executed; a triggered test
     stops the plan with H_exec = k ("replan" or "prune"), and H_exec = 0 becomes "pause" (hold pose one
     control step, then replan). ``check="after"`` is the paper's literal order: execute step k, then test
     it, so H_exec >= 1 and nothing is ever paused. All steps trusted: (len(u), "complete").

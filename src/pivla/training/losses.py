@@ -42,7 +42,7 @@ def actor_loss(continuous: torch.Tensor, log_sigma: torch.Tensor, actions_taken:
     """Eq. 10: -(1/K) sum_k log N(a_{t,k} | A_c[k], sigma^2) * A_hat_{t,k}.
 
     a_{t,k} are the actions actually taken in the data; a deterministic head would give log pi of its own
-    output no gradient (METHOD.md). Advantages come normalised and detached from GAE.
+    output no gradient (docs/method.md, "Unified loss"). Advantages come normalised and detached from GAE.
 
     With negative advantages this objective is unbounded below: the mean runs away from bad actions
     quadratically, and sigma can collapse. So sigma stays in [SIGMA_MIN, SIGMA_MAX], advantages are clipped
