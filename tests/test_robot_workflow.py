@@ -337,3 +337,57 @@ def test_cli_teleoperate_record_replay_and_view_the_so101(tmp_path, monkeypatch,
     with pytest.raises(SystemExit, match="simulated bus"):
         main(["robot", "teleoperate", "--robot", "so101", "--sim"])
     assert os.environ["HF_LEROBOT_CALIBRATION"] == str(calib_root)
+
+
+def test_pivla_arm_holds_when_the_link_drops_while_recording(tmp_path):
+    """The board goes away mid-episode: the link is named lost, the arm is stopped, the kept episode stays."""
+    from pivla.robot.calibration import ArmCalibration
+    from pivla.robot.env import RobotEnv, RobotEnvConfig
+    from pivla.robot.fakeboard import FakeBoard
+    from pivla.robot.link import Board, LinkLost
+    from pivla.robot.robot import SerialRobot
+    from pivla.robot.safety import SafetyLayer
+
+    fake = FakeBoard()
+    calib = ArmCalibration.nominal()
+    robot = SerialRobot(Board.open(fake.port, reply_timeout_s=0.1, retries=1), calib, SafetyLayer(calib))
+    stops = []
+    stop = robot.stop
+    robot.stop = lambda: (stops.append(1), stop())[1]
+    env = RobotEnv(robot, {"agentview_rgb": FakeCamera(80, 80)}, "move right",
+                   RobotEnvConfig(realtime=False, max_steps=10**9))
+
+    def keys():
+        yield from ["d"] * 3 + ["n"] + ["w"] * 2
+        fake.close()
+        yield from ["w"] * 3
+    try:
+        with pytest.raises(LinkLost):
+            record(env, EEJog(), keys(), tmp_path / "real", "move right", say=lambda s: None)
+    finally:
+        env.close()
+        robot.close()
+    assert stops  # the arm was told to hold (the firmware's watchdog holds it when nothing arrives)
+    assert [len(e) for e in read_lerobot(tmp_path / "real")] == [3]
+
+
+def test_cli_on_the_twin_calibrates_records_and_replays(tmp_path, monkeypatch, capsys):
+    import pivla.robot.keyboard as keyboard
+
+    script = []
+    monkeypatch.setattr(keyboard, "terminal_keys", lambda period_s=0.1: iter(script))
+    calib = tmp_path / "arm.json"
+    assert main(["robot", "calibrate", "--sim", "--calibration", str(calib)]) == 0
+    assert main(["robot", "calibrate-servos", "--sim", "--calibration", str(calib)]) == 0
+    assert json.loads(calib.read_text())["version"] == 1
+    script[:] = ["a"] * 3 + ["n"] + ["esc"]
+    out = tmp_path / "twin"
+    assert main(["robot", "record", "--sim", "--image-size", "32", "--out", str(out), "--instruction", "left"]) == 0
+    episodes = read_lerobot(out)
+    assert [len(e) for e in episodes] == [3] and episodes[0].obs["agentview_rgb"].shape == (3, 32, 32, 3)
+    assert main(["robot", "replay", "--sim", "--dataset", str(out)]) == 0
+    assert "3 actions at 10 fps" in capsys.readouterr().out
+    script[:] = ["a", "q"]
+    assert main(["robot", "teleoperate", "--sim"]) == 0
+    with pytest.raises(SystemExit, match="give --port"):
+        main(["robot", "replay", "--dataset", str(out)])
