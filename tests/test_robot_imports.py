@@ -1,6 +1,7 @@
 """The arm stack runs on a robot laptop's client-only install: neither MuJoCo nor torch is imported by the
 serial link, protocol, safety layer, calibration, the arm driver, RobotEnv, the repeatability measurement or
-the SO-101's bus, driver and port finder, and with both made unimportable the whole stack drives a (fake)
+the SO-101's bus, driver and port finder, nor by the workflow on top (the factory, keys, teleoperation,
+recording, replay, calibration, the run loop), and with both made unimportable the whole stack drives a (fake)
 board end to end. Only the twin-backed modules (``pivla.robot.sim``, ``pivla.robot.autocollect``) need
 MuJoCo."""
 
@@ -10,7 +11,8 @@ import subprocess
 import sys
 
 CLIENT_MODULES = ("link", "protocol", "safety", "calibration", "robot", "env", "repeatability", "feetech", "simbus",
-                  "so101", "ports")
+                  "so101", "ports", "so101_env", "factory", "keyboard", "teleoperation", "recording", "replay",
+                  "calibrate", "run")
 HEAVY = ("mujoco", "torch")
 
 
