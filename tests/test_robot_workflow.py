@@ -391,3 +391,40 @@ def test_cli_on_the_twin_calibrates_records_and_replays(tmp_path, monkeypatch, c
     assert main(["robot", "teleoperate", "--sim"]) == 0
     with pytest.raises(SystemExit, match="give --port"):
         main(["robot", "replay", "--dataset", str(out)])
+
+
+def test_view_reads_pivla_hdf5_datasets_too(tmp_path):
+    from pivla.data.episode import Episode
+    from pivla.data.hdf5 import write_episodes
+    from pivla.data.view import view
+
+    cam = FakeCamera(32, 32)
+    eps = [Episode(np.zeros((t, 7)), {"agentview_rgb": np.stack([cam.read() for _ in range(t)]),
+                                      "ee_pos": np.ones((t, 3))}, "push") for t in (4, 6)]
+    write_episodes(tmp_path / "d" / "a.hdf5", eps, env_meta={"control_hz": 10})
+    out = view(tmp_path / "d", 1, viewer="files")
+    assert out["video"] == tmp_path / "d-view" / "episode_000001.mp4" and out["video"].is_file()
+    assert out["plot"].is_file()
+
+
+def test_cli_calibrates_an_so101_on_the_bus(tmp_path, monkeypatch):
+    import pivla.robot.keyboard as keyboard
+
+    with SimBus(SimBusConfig()) as sim:
+        def keys():
+            yield "enter"
+            for ticks in (1000, 3000):
+                for sid in range(1, 7):
+                    sim.set_position(sid, ticks)
+                yield ""
+            yield "enter"
+        monkeypatch.setattr(keyboard, "terminal_keys", lambda period_s=0.1: keys())
+        monkeypatch.setattr(F.BusConfig.__init__, "__defaults__", (1_000_000, BUS["reply_timeout_ms"], BUS["retries"]))
+        path = tmp_path / "leader.json"
+        assert main(["robot", "calibrate", "--robot", "so101", "--port", sim.port, "--arm-id", "leader",
+                     "--calibration", str(path)]) == 0
+        calib = SO101Calibration.load(path, "leader")
+        assert (calib.motors["elbow_flex"].range_min, calib.motors["elbow_flex"].range_max) == (1000, 3000)
+        with pytest.raises(SystemExit, match="calibration file by its id"):
+            main(["robot", "calibrate", "--robot", "so101", "--port", sim.port, "--arm-id", "leader",
+                  "--calibration", str(tmp_path / "other.json")])
