@@ -9,11 +9,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pivla.data.action_space import ActionSpace
+from pivla.model.config import PROPRIO_LENGTHS
 
 IMAGE_KEYS = ("agentview_rgb", "eye_in_hand_rgb")
 LOW_DIM_KEYS = ("ee_pos", "ee_ori", "gripper_states", "joint_states")
-# what a policy reads of pivla's and LIBERO's files unless told otherwise (the agent view first)
-PROPRIO_KEYS = ("ee_pos", "ee_ori", "gripper_states")
+# what a policy reads of pivla's and LIBERO's files unless told otherwise
+PROPRIO_KEYS = tuple(PROPRIO_LENGTHS)
 STATE_KEY = "state"  # the one key of a state vector without pivla's per-key names (LeRobot's observation.state)
 
 

@@ -6,6 +6,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+# The proprioception of pivla's and LIBERO's observations (pivla.envs), each key with its length: what a policy
+# reads unless told otherwise. ``joint_states`` is not among them: its length is the arm's number of joints.
+PROPRIO_LENGTHS = {"ee_pos": 3, "ee_ori": 3, "gripper_states": 2}
+
 
 @dataclass
 class BackboneConfig:
@@ -103,10 +107,11 @@ class ModelConfig:
     """Image keys of an observation, the agent view first (empty in a training config: the dataset's)."""
     image_size: int = 96
     """Side in pixels of the square pictures the model reads (other sizes are resized)."""
-    proprio_keys: tuple[str, ...] = ("ee_pos", "ee_ori", "gripper_states")
+    proprio_keys: tuple[str, ...] = tuple(PROPRIO_LENGTHS)
     """Proprioceptive keys, concatenated in this order (empty in a training config: the dataset's)."""
-    proprio_dim: int = 8
-    """Length of the concatenated proprio vector (0 in a training config: from the dataset)."""
+    proprio_dim: int = sum(PROPRIO_LENGTHS.values())
+    """Length of the concatenated proprio vector, derived from the keys: the sum of their lengths in the
+    training dataset (0 in a training config: training sums them; a value given must agree)."""
     max_text_len: int = 16
     """Instruction tokens kept."""
     state_hidden: int = 256

@@ -50,16 +50,13 @@ from pivla.control.contract import PolicySpec
 from pivla.control.latency import Latency, latency_rng, parse_latency
 from pivla.model import encoder_runtime as er
 from pivla.model.backbone import ConvEncoder
+from pivla.model.config import PROPRIO_LENGTHS
 from pivla.model.onnx_encoder import ObservationEncoder
 from pivla.policy import load_policy
 from pivla.serving import protocol as P
 from pivla.serving.msgpack_numpy import DecodeError, packb, unpackb
 
 log = logging.getLogger(__name__)
-
-# Lengths of the proprioceptive keys of pivla's observation convention (pivla.envs); ``joint_states`` has as
-# many entries as the arm has joints, so its length is what the policy's proprio_dim leaves for it.
-PROPRIO_LENGTHS = {"ee_pos": 3, "ee_ori": 3, "gripper_states": 2}
 
 
 @dataclasses.dataclass
@@ -124,7 +121,8 @@ def read_api_key(path: str) -> str | None:
 
 def spec_of(policy: Any) -> PolicySpec:
     """``policy.spec``, with the proprio lengths a run written before they were stored leaves unknown (-1)
-    taken from pivla's observation convention (``PROPRIO_LENGTHS``, the rest of proprio_dim for one other key)."""
+    taken from pivla's observation convention (``PROPRIO_LENGTHS``; one other key, such as ``joint_states``,
+    whose length is the arm's, gets the rest of proprio_dim)."""
     spec = policy.spec
     if all(n > 0 for _, n in spec.proprio):
         return spec
