@@ -118,16 +118,3 @@ def terminal_keys(period_s: float = 0.1, stream=None) -> Iterator[str]:
     finally:
         termios.tcsetattr(fd, termios.TCSADRAIN, old)
 
-
-def lines(prompt_keys: Iterator[str]):
-    """A ``wait(prompt)`` callable that prints ``prompt`` and returns once Enter arrives from ``prompt_keys``
-    (for guided procedures that take the same key source as the loops)."""
-    def wait(prompt: str) -> None:
-        print(prompt, flush=True)
-        for key in prompt_keys:
-            if key == "enter":
-                return
-            if event(key) is Event.STOP:
-                raise KeyboardInterrupt
-        raise KeyboardInterrupt  # the key source ended
-    return wait
