@@ -25,9 +25,10 @@ from pivla.data.action_space import (
     ActionSpace,
     infer_action_space,
 )
+from pivla.data.convert import convert
 from pivla.data.episode import DatasetError
 from pivla.data.hdf5 import read_action_space, write_episodes
-from pivla.data.lerobot import convert, lerobot_action_space
+from pivla.data.lerobot.reader import lerobot_action_space
 from pivla.data.read import dataset_layout, read_dataset
 from pivla.data.synthetic import make_synthetic_dataset
 from pivla.policy import load_policy

@@ -15,18 +15,12 @@ import pyarrow.parquet as pq
 import pytest
 
 from pivla.data.action_space import EE_DELTA
+from pivla.data.convert import ConvertConfig, convert, run_convert
 from pivla.data.episode import DatasetError, Episode
 from pivla.data.hdf5 import write_episodes
-from pivla.data.lerobot import (
-    ConvertConfig,
-    LeRobotWriteConfig,
-    convert,
-    detect_format,
-    read_lerobot,
-    run_convert,
-    write_lerobot,
-)
-from pivla.data.read import read_dataset
+from pivla.data.lerobot.reader import read_lerobot
+from pivla.data.lerobot.writer import LeRobotWriteConfig, write_lerobot
+from pivla.data.read import detect_format, read_dataset
 from pivla.data.synthetic import make_synthetic_dataset
 from tests.conftest import tiny_train_config
 from tests.lerobot_files import encode_video, fixed_list

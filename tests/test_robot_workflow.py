@@ -13,7 +13,7 @@ import pytest
 
 from pivla.cli import main
 from pivla.data.action_space import EE_DELTA
-from pivla.data.lerobot import lerobot_layout, read_info, read_lerobot
+from pivla.data.lerobot.reader import lerobot_layout, read_info, read_lerobot
 from pivla.robot import feetech as F
 from pivla.robot.calibration import CalibrationError
 from pivla.robot.keyboard import Event, decode, event

@@ -11,7 +11,7 @@ import numpy as np
 import tyro
 
 from pivla.control.executors import ExecutorConfig, FixedConfig
-from pivla.data.lerobot import ConvertConfig
+from pivla.data.convert import ConvertConfig
 from pivla.envs.collect import CollectConfig
 
 log = logging.getLogger("pivla.collect")
@@ -101,8 +101,8 @@ def export_video(cfg: ExportVideoConfig) -> int:
 
 
 def convert(cfg: ConvertConfig) -> int:
+    from pivla.data.convert import run_convert
     from pivla.data.episode import DatasetError
-    from pivla.data.lerobot import run_convert
 
     try:
         res = run_convert(cfg)

@@ -5,6 +5,7 @@ LIBERO's) and :mod:`pivla.data.lerobot` (LeRobot v3.0); :mod:`pivla.data.read` r
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -74,3 +75,14 @@ class Episode:
 
     def __len__(self) -> int:
         return len(self.actions)
+
+
+def check_destination(dst: Path, overwrite: bool, src: Path | None = None) -> None:
+    """Refuse a dataset destination that overlaps the source, or that exists and is not empty (unless
+    ``overwrite``)."""
+    if src is not None:
+        a, b = src.resolve(), dst.resolve()
+        if a == b or a in b.parents or b in a.parents:
+            raise DatasetError(f"destination {dst} overlaps the source {src}")
+    if dst.exists() and not overwrite and (not dst.is_dir() or any(dst.iterdir())):
+        raise DatasetError(f"{dst} already exists (pass overwrite to replace it)")

@@ -19,15 +19,24 @@ the file-level instruction and ``success=True``. See docs/dataset.md.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+import re
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from pivla.data.action_space import EE_DELTA, ActionSpace
-from pivla.data.episode import IMAGE_KEYS, PROPRIO_KEYS, STATE_KEY, DatasetError, DatasetLayout, Episode
-from pivla.io import atomic_path
+from pivla.data.episode import (
+    IMAGE_KEYS,
+    PROPRIO_KEYS,
+    STATE_KEY,
+    DatasetError,
+    DatasetLayout,
+    Episode,
+    check_destination,
+)
+from pivla.io import atomic_dir, atomic_path
 
 REQUIRED_DEMO_KEYS = ("actions", "rewards", "dones", "obs")  # cameras: whichever a reader asks for
 ACTION_SPACE_ATTR = "action_space"
@@ -241,3 +250,43 @@ def dataset_files(root: str | Path) -> list[Path]:
     if not files:
         raise DatasetError(f"{root}: no .hdf5 files found")
     return files
+
+
+def hdf5_fps(files: list[Path]) -> int | None:
+    """The control rate recorded in the files' ``env_args`` (pivla's ``control_hz``, LIBERO's
+    ``env_kwargs.control_freq``), if any."""
+    rates = set()
+    for path in files:
+        env = read_env_meta(path)
+        rate = env.get("control_hz") or (env.get("env_kwargs") or {}).get("control_freq")
+        if rate:
+            rates.add(round(float(rate)))
+    if len(rates) > 1:
+        raise DatasetError(f"the files record different control rates {sorted(rates)} Hz: give fps")
+    return rates.pop() if rates else None
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "_", text.lower()).strip("_")[:80] or "task"
+
+
+def write_hdf5(root: str | Path, episodes: Iterable[Episode], env_meta: dict, episodes_per_file: int = 50,
+               overwrite: bool = False, action_space: ActionSpace = EE_DELTA) -> Path:
+    """Write episodes as LIBERO-layout files, one per run of consecutive episodes of one task (at most
+    ``episodes_per_file``), named ``<n>_<task>_demo.hdf5`` so their sorted order is the episode order."""
+    root = Path(root)
+    check_destination(root, overwrite)
+    if episodes_per_file < 1:
+        raise DatasetError(f"episodes_per_file must be at least 1, got {episodes_per_file}")
+    with atomic_dir(root) as tmp:
+        run: list[Episode] = []
+        n = 0
+        for ep in episodes:
+            if run and (ep.instruction != run[0].instruction or len(run) >= episodes_per_file):
+                write_episodes(tmp / f"{n:05d}_{_slug(run[0].instruction)}_demo.hdf5", run, env_meta, action_space)
+                run, n = [], n + 1
+            run.append(ep)
+        if not run:
+            raise DatasetError("refusing to write a dataset with no episodes")
+        write_episodes(tmp / f"{n:05d}_{_slug(run[0].instruction)}_demo.hdf5", run, env_meta, action_space)
+    return root

@@ -11,7 +11,6 @@ action space must be those of the new episodes.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from pathlib import Path
@@ -20,8 +19,9 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from pivla.data.action_space import ActionSpace
-from pivla.data.episode import Episode
-from pivla.data.lerobot import (
+from pivla.data.episode import DatasetError, Episode
+from pivla.data.lerobot.reader import _read_tasks, _state_split, lerobot_action_space, read_info
+from pivla.data.lerobot.spec import (
     DATA_PATH,
     EPISODES_DIR,
     IMAGE_PREFIX,
@@ -31,15 +31,8 @@ from pivla.data.lerobot import (
     STATS_PATH,
     TASKS_PATH,
     VIDEO_PATH,
-    DatasetError,
-    LeRobotWriteConfig,
-    _read_tasks,
-    _state_split,
-    _VideoSink,
-    _Writer,
-    lerobot_action_space,
-    read_info,
 )
+from pivla.data.lerobot.writer import LeRobotWriteConfig, _VideoSink, _Writer
 
 STAGING = ".pivla-commit"  # where the next metadata is written before it is renamed into meta/
 
@@ -167,6 +160,7 @@ class LeRobotAppender:
     def __init__(self, root: str | Path, cfg: LeRobotWriteConfig, action_space: ActionSpace,
                  resume: bool = True) -> None:
         self.root = Path(root)
+        self._failed = False
         cfg = LeRobotWriteConfig(**{**cfg.__dict__, "episodes_per_file": 1})
         if (self.root / INFO_PATH).is_file():
             if not resume:
@@ -193,11 +187,13 @@ class LeRobotAppender:
 
     def add(self, episode: Episode) -> int:
         """Writes and commits one episode; returns its index."""
+        if self._failed:
+            raise DatasetError(f"{self.root}: an episode failed to be written; open the dataset again to continue it")
         try:
             self._writer.add(episode)
         except BaseException:
-            self._writer.close()
-            self._writer.rows = self._writer.rows[: self.episodes]
+            self._failed = True
+            self._writer.close()  # what this episode wrote is named by no metadata, and written over next time
             raise
         self._writer.commit()
         return self.episodes - 1
@@ -212,8 +208,3 @@ class LeRobotAppender:
     def __exit__(self, *exc) -> None:
         self.close()
 
-
-def dataset_summary(root: str | Path) -> dict:
-    """Episodes, frames and fps of a LeRobot dataset, from meta/info.json."""
-    info = json.loads((Path(root) / INFO_PATH).read_text())
-    return {"episodes": info["total_episodes"], "frames": info["total_frames"], "fps": info["fps"]}

@@ -19,7 +19,7 @@ import numpy as np
 
 from pivla.data.action_space import ActionSpace
 from pivla.data.episode import DatasetError, Episode
-from pivla.data.hdf5 import dataset_files, hdf5_action_space, iter_episodes
+from pivla.data.hdf5 import dataset_files, hdf5_action_space, hdf5_fps, iter_episodes
 
 Viewer = Literal["auto", "rerun", "files"]
 
@@ -43,23 +43,24 @@ def _vectors(ep: Episode) -> dict[str, np.ndarray]:
 
 def load_episode(root: str | Path, index: int) -> EpisodeView:
     """Episode ``index`` of the dataset at ``root`` with its fps, action space and state names."""
-    from pivla.data import lerobot
+    from pivla.data.lerobot.reader import is_lerobot, iter_lerobot, lerobot_action_space, read_info
+    from pivla.data.lerobot.spec import STATE
 
     root = Path(root)
-    if lerobot.is_lerobot(root):
-        info = lerobot.read_info(root)
-        ep = next(lerobot.iter_lerobot(root, episodes=[index]))
+    if is_lerobot(root):
+        info = read_info(root)
+        ep = next(iter_lerobot(root, episodes=[index]))
         names = {}
-        state = info["features"].get(lerobot.STATE, {}).get("names")
+        state = info["features"].get(STATE, {}).get("names")
         if isinstance(state, list) and "state" in ep.obs and len(state) == ep.obs["state"].shape[-1]:
             names["state"] = [str(n) for n in state]
-        return EpisodeView(ep, index, int(info["fps"]), lerobot.lerobot_action_space(root, info), names)
+        return EpisodeView(ep, index, int(info["fps"]), lerobot_action_space(root, info), names)
     files = dataset_files(root)
     i = 0
     for path in files:
         for ep in iter_episodes(path):
             if i == index:
-                return EpisodeView(ep, index, lerobot._hdf5_fps(files) or 10, hdf5_action_space(files))
+                return EpisodeView(ep, index, hdf5_fps(files) or 10, hdf5_action_space(files))
             i += 1
     raise DatasetError(f"{root} has episodes 0..{i - 1}, not {index}")
 

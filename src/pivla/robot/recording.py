@@ -23,7 +23,7 @@ import numpy as np
 
 from pivla.data.action_space import EE_DELTA, ActionSpace
 from pivla.data.episode import Episode
-from pivla.data.lerobot import LeRobotWriteConfig
+from pivla.data.lerobot.writer import LeRobotWriteConfig
 from pivla.data.lerobot_append import LeRobotAppender
 from pivla.robot.keyboard import Event, event
 from pivla.robot.teleoperation import Jog

@@ -18,7 +18,7 @@ import numpy as np
 
 from pivla.data.action_space import ActionSpace
 from pivla.data.episode import DatasetError
-from pivla.data.lerobot import iter_lerobot, lerobot_action_space, read_info
+from pivla.data.lerobot.reader import iter_lerobot, lerobot_action_space, read_info
 
 
 @dataclass
