@@ -134,3 +134,11 @@ def infer_action_space(names: Sequence[str]) -> ActionSpace:
         return ActionSpace(names, ActionKind.JOINT_POSITION, gripper,
                            None if gripper is None else (0.0, 100.0), units=units)
     return ActionSpace(names, ActionKind.UNKNOWN, gripper)
+
+
+# The SO-101 (LeRobot's so101_follower): servo ids 1..6 in this order, and the six absolute joint positions of its
+# actions and state as LeRobot names them. The driver (pivla.robot.so101) and the MuJoCo twin (pivla.envs.so101)
+# both read these, so a policy trained in the twin and a dataset recorded on the arm name their actions alike.
+SO101_MOTORS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
+SO101_JOINT_NAMES = tuple(f"{m}{POSITION_SUFFIX}" for m in SO101_MOTORS)
+SO101 = infer_action_space(SO101_JOINT_NAMES)  # degrees for the five body joints, the gripper 0 (closed)..100 (open)

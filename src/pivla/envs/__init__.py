@@ -1,7 +1,7 @@
 """Environments behind one small interface, so that collection, evaluation and the robot share a runner.
 
-Every environment family (``tabletop``: the simulated twin; ``libero``: the LIBERO benchmark) is a module
-``pivla.envs.<family>`` exposing::
+Every environment family (``tabletop``: the simulated twin of the paper's arm; ``so101``: the SO-101 twin;
+``libero``: the LIBERO benchmark) is a module ``pivla.envs.<family>`` exposing::
 
     list_tasks(suite: str) -> list[TaskSpec]
     make_env(suite: str, task: int | str, **kwargs) -> gymnasium.Env
@@ -9,7 +9,10 @@ Every environment family (``tabletop``: the simulated twin; ``libero``: the LIBE
 The gymnasium env's observations are dicts under the dataset's key names (``agentview_rgb``,
 ``eye_in_hand_rgb``, ``ee_pos``, ``ee_ori``, ``gripper_states``, ``joint_states``) plus ``instruction``;
 actions are the dataset's 7-D end-effector deltas (gripper -1 open, +1 close); ``info["success"]``
-reports task success; ``terminated`` is True on success; ``truncated`` at the task's step limit.
+reports task success; ``terminated`` is True on success; ``truncated`` at the task's step limit. The SO-101 twin
+keeps the interface with the SO-101's own layout, as the real arm's env has it: observations ``front``, ``wrist``,
+``state`` (six joint positions) and ``instruction``, actions six absolute joint positions in LeRobot's units
+(``pivla.data.action_space.SO101``).
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import importlib
 from dataclasses import dataclass
 from typing import Any
 
-FAMILIES = {"tabletop": "pivla.envs.tabletop", "libero": "pivla.envs.libero"}
+FAMILIES = {"tabletop": "pivla.envs.tabletop", "so101": "pivla.envs.so101", "libero": "pivla.envs.libero"}
 
 
 @dataclass(frozen=True)

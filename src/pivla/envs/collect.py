@@ -15,12 +15,14 @@ import functools
 import logging
 import multiprocessing as mp
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import tyro
 
+from pivla.data.action_space import EE_DELTA, ActionSpace
 from pivla.data.episode import Episode
 from pivla.data.hdf5 import read_episodes, write_episodes
 from pivla.envs import TaskSpec, make_env, seeds, select_tasks
@@ -32,7 +34,7 @@ from pivla.io import atomic_write_json, exclusive_lock, read_json
 
 log = logging.getLogger(__name__)
 
-DEFAULT_IMAGE_SIZE = {"tabletop": 80, "libero": 128}
+DEFAULT_IMAGE_SIZE = {"tabletop": 80, "so101": 80, "libero": 128}
 
 
 @dataclass
@@ -42,10 +44,10 @@ class CollectConfig:
     out: str
     """Output dataset directory."""
     suite: str = "pick_place"
-    """tabletop: pick_place, pick_place_seen, pick_place_unseen, drawer, stack, long; libero: libero_spatial,
-    libero_object, libero_goal, libero_10, ..."""
-    env: Literal["tabletop", "libero"] = "tabletop"
-    """The simulated twin, or LIBERO (privileged-state scripted experts)."""
+    """tabletop: pick_place, pick_place_seen, pick_place_unseen, drawer, stack, long; so101: pick_place; libero:
+    libero_spatial, libero_object, libero_goal, libero_10, ..."""
+    env: Literal["tabletop", "so101", "libero"] = "tabletop"
+    """The simulated twin of the paper's arm, the SO-101 twin, or LIBERO (privileged-state scripted experts)."""
     tasks: str | None = None
     """Task indices or names, comma-separated (default: all)."""
     episodes: int = 50
@@ -62,11 +64,13 @@ class CollectConfig:
     dispatch: Annotated[BackendConfig, tyro.conf.arg(name="")] = field(default_factory=BackendConfig)
     """Where the episodes run: --backend local | ray, --ray-address HOST:PORT (docs/cluster.md)."""
     realism: Literal["ideal", "servo"] = "ideal"
-    """Twin actuation: ideal, or hobby-servo backlash, deadband and noise."""
+    """Twin actuation: ideal, or servo realism (tabletop: hobby-servo backlash, deadband and noise; so101: the
+    STS3215's resolution, speed profile, position loop, torque cap and dead zone)."""
     image_size: int | None = None
-    """Camera resolution in px (default: tabletop 80, the recipe's; libero 128)."""
+    """Camera resolution in px (default: tabletop and so101 80, the recipe's; libero 128)."""
     noise: float = 0.0
-    """Noise on the expert's executed actions (std, action units); labels stay clean (DART)."""
+    """Noise on the expert's executed actions (std, action units: tabletop [-1, 1] deltas, so101 degrees of the
+    body joints); labels stay clean (DART)."""
     miss: float = 0.0
     """Share of episodes whose first grasp is executed off the object, so the demonstrations show reopening
     and grasping again (labels stay clean)."""
@@ -100,20 +104,14 @@ def collect_demos(cfg: CollectConfig) -> int:
     check_backend(cfg.dispatch)
     if cfg.env == "libero":
         return _collect_libero(cfg)
-    # The twin is imported only when it collects: its import sets the process's MuJoCo rendering variables.
-    from pivla.envs.tabletop import make_env as make_twin
-    from pivla.envs.tabletop import parse_perturb
-    from pivla.envs.tabletop.env import CONTROL_HZ, ROT_SCALE, TRANS_SCALE
-    from pivla.envs.tabletop.expert import make_expert
-
-    perturb = parse_perturb(cfg.perturb)
+    twin = _twin(cfg)
     specs = select_tasks(cfg.env, cfg.suite, cfg.tasks)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    expert = make_expert(cfg.noise, cfg.miss)
+    expert = twin.expert
     factories = {
-        spec.name: functools.partial(make_twin, cfg.suite, spec.name, image_size=cfg.size, realism=cfg.realism,
-                                     perturb=perturb.spec(), paraphrase=cfg.paraphrase)
+        spec.name: functools.partial(twin.make_env, cfg.suite, spec.name, image_size=cfg.size, realism=cfg.realism,
+                                     perturb=twin.perturb, paraphrase=cfg.paraphrase)
         for spec in specs
     }
     task_seeds = {spec.name: episode_seed(cfg.seed, spec.index) for spec in specs}
@@ -141,12 +139,10 @@ def collect_demos(cfg: CollectConfig) -> int:
         env_meta = {
             "env": cfg.env, "suite": cfg.suite, "task": spec.name, "task_index": spec.index,
             "instruction": spec.instruction, "max_steps": spec.max_steps, "realism": cfg.realism,
-            "perturb": perturb.spec(), "image_size": cfg.size, "control_hz": CONTROL_HZ,
-            "action": {"translation_m_per_unit": TRANS_SCALE, "rotation_rad_per_unit": ROT_SCALE,
-                       "gripper": "-1 open, +1 closed"},
+            "perturb": twin.perturb, "image_size": cfg.size, **twin.meta,
             "seed": cfg.seed, "seed_family": cfg.seed_family, "noise": cfg.noise, "miss": cfg.miss, "attempts": n,
         }
-        path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta)
+        path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta, action_space=twin.action_space)
         rate = (sum(e.success for e in episodes) if cfg.keep_failures else len(episodes)) / n
         log.info("%s: %d episodes (%d steps) -> %s; expert success %.1f%% over %d attempts", spec.name,
                  len(episodes), sum(len(e) for e in episodes), path, 100 * rate, n)
@@ -174,6 +170,42 @@ def collect_demos(cfg: CollectConfig) -> int:
                 status = max(status, finish(spec))
         pending = [spec for spec in pending if not settled(spec.name)]
     return status
+
+
+@dataclass(frozen=True)
+class _Twin:
+    """What collecting on one simulated twin needs: its env factory, its expert, the perturbation spec its envs
+    get (canonical), what its datasets record of its control (``control_hz``, the action convention) and the
+    action space of its episodes."""
+
+    make_env: Callable[..., Any]
+    expert: Any
+    perturb: str
+    meta: dict
+    action_space: ActionSpace
+
+
+def _twin(cfg: CollectConfig) -> _Twin:
+    """The twin's pieces for ``cfg.env`` (tabletop or so101), imported only when it collects: a twin's import sets
+    the process's MuJoCo rendering variables."""
+    if cfg.env == "so101":
+        from pivla.envs import so101
+        from pivla.envs.so101.expert import make_expert as so101_expert
+
+        so101.parse_perturb(cfg.perturb)
+        meta = {"control_hz": so101.CONTROL_HZ,
+                "action": {"kind": "absolute joint positions", "names": list(so101.ACTION_SPACE.names),
+                           "units": "degrees, the gripper 0 (closed) .. 100 (open)"},
+                "noise_units": "degrees on the five body joints"}
+        return _Twin(so101.make_env, so101_expert(cfg.noise, cfg.miss), "none", meta, so101.ACTION_SPACE)
+    from pivla.envs.tabletop import make_env as make_tabletop
+    from pivla.envs.tabletop import parse_perturb
+    from pivla.envs.tabletop.env import CONTROL_HZ, ROT_SCALE, TRANS_SCALE
+    from pivla.envs.tabletop.expert import make_expert
+
+    meta = {"control_hz": CONTROL_HZ, "action": {"translation_m_per_unit": TRANS_SCALE,
+                                                 "rotation_rad_per_unit": ROT_SCALE, "gripper": "-1 open, +1 closed"}}
+    return _Twin(make_tabletop, make_expert(cfg.noise, cfg.miss), parse_perturb(cfg.perturb).spec(), meta, EE_DELTA)
 
 
 def _collect_libero(cfg: CollectConfig) -> int:

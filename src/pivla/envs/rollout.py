@@ -1,12 +1,12 @@
 """Episode runner shared by demonstration collection and policy rollouts: (env, actor, seed) -> Episode.
 
-An *actor* is any callable ``actor(obs) -> action (7,)``; if it has ``reset(env, seed)`` that is called
-after every ``env.reset``, and its ``source`` attribute ("expert", "policy", ...) is recorded. Every
-episode records its actions, observations (before each action), rewards, dones and success, so failed
-rollouts are as usable (for the value head) as successful demonstrations. An actor that executes a
-perturbed action but wants a different one recorded (a DART expert) exposes it as ``actor.label``; one
-whose demonstration should go on past the moment of success (to let go and move away, not just the first
-step of opening) sets ``actor.follow_through`` to the number of extra steps to record.
+An *actor* is any callable ``actor(obs) -> action (D,)`` (D the env's action dimension); if it has
+``reset(env, seed)`` that is called after every ``env.reset``, and its ``source`` attribute ("expert",
+"policy", ...) is recorded. Every episode records its actions, observations (before each action), rewards,
+dones and success, so failed rollouts are as usable (for the value head) as successful demonstrations. An
+actor that executes a perturbed action but wants a different one recorded (a DART expert) exposes it as
+``actor.label``; one whose demonstration should go on past the moment of success (to let go and move away,
+not just the first step of opening) sets ``actor.follow_through`` to the number of extra steps to record.
 
 Episode seeds depend only on (base seed, episode index), never on the number of worker processes, so
 ``--workers 1`` and ``--workers 4`` produce identical datasets.
@@ -84,7 +84,7 @@ def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None,
         "stage_progress": info.get("stage_progress"),
     }
     return Episode(
-        actions=np.array(actions, np.float32).reshape(-1, 7),
+        actions=np.array(actions, np.float32).reshape(len(actions), _action_dim(env)),
         obs={k: np.stack(v) for k, v in kept.items()},
         instruction=instruction,
         rewards=np.array(rewards, np.float32),
@@ -93,6 +93,12 @@ def run_episode(env: Any, actor: Actor, seed: int, max_steps: int | None = None,
         source=getattr(actor, "source", "rollout"),
         meta=meta,
     )
+
+
+def _action_dim(env: Any) -> int:
+    """The env's action dimension (7 for the twin's and LIBERO's end-effector deltas, 6 for the SO-101's joints)."""
+    shape = getattr(getattr(env, "action_space", None), "shape", None)
+    return int(shape[0]) if shape else 7
 
 
 _WORKER_ENVS: dict[bytes, Any] = {}

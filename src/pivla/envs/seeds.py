@@ -1,8 +1,8 @@
 """Episode seeds of the benchmark: families fixed here, disjoint by construction.
 
 An episode seed fixes everything about a twin episode (layout, perturbation draws, servo noise, paraphrase);
-``TabletopEnv.reset`` hashes it through numpy's ``SeedSequence``, so neighbouring integers give independent
-episodes. Four families, one use each:
+``TabletopEnv.reset`` (and the SO-101 twin's) hashes it through numpy's ``SeedSequence``, so neighbouring
+integers give independent episodes. Four families, one use each:
 
 - ``train``: demonstrations (and policy rollouts recorded to train on);
 - ``validation``: calibration and every recipe decision (checkpoints, thresholds, settings);
@@ -50,6 +50,8 @@ TASKS: dict[str, int] = {
     "rock_away": 6, "rock_left": 7, "rock_right": 8,
     "open_drawer": 9, "close_drawer": 10, "stack_red_on_green": 11,
     "block_left_then_ball_away": 12, "rock_right_then_block_away": 13,
+    # the SO-101 twin's pick_place (pivla.envs.so101)
+    "red_cube_in_bowl": 14, "blue_cube_in_bowl": 15, "red_cube_on_pad": 16, "blue_cube_on_pad": 17,
 }
 BASE = 2**31  # every seed below this is a legacy one
 FAMILY_SHIFT, CONDITION_SHIFT, TASK_SHIFT = 29, 22, 16

@@ -34,6 +34,7 @@ from pivla.control.executors import (
     make_executor,
 )
 from pivla.control.latency import parse_latency
+from pivla.data.action_space import ActionSpace
 from pivla.data.hdf5 import read_episodes, write_episodes
 from pivla.envs import family, make_env, seeds, select_tasks
 from pivla.envs.backend import BackendConfig, check_backend, ray_map
@@ -54,11 +55,11 @@ class EvalConfig:
     """Run directory, or ws://HOST:PORT of a served policy."""
     out: str
     """Directory for results.json, episodes.jsonl, traces/ and videos/ (an interrupted evaluation resumes)."""
-    env: Literal["tabletop", "libero"] = "tabletop"
-    """The simulated twin, or LIBERO."""
+    env: Literal["tabletop", "so101", "libero"] = "tabletop"
+    """The simulated twin of the paper's arm, the SO-101 twin, or LIBERO."""
     suite: str = "pick_place"
-    """Task suite (tabletop: pick_place, pick_place_seen, pick_place_unseen, drawer, stack, long; libero:
-    libero_spatial, libero_object, libero_goal, libero_10, ...)."""
+    """Task suite (tabletop: pick_place, pick_place_seen, pick_place_unseen, drawer, stack, long; so101:
+    pick_place; libero: libero_spatial, libero_object, libero_goal, libero_10, ...)."""
     tasks: str | None = None
     """Task indices or names, comma-separated (default: all)."""
     executor: ExecutorConfig = field(default_factory=AURDConfig)
@@ -160,7 +161,7 @@ def _env(task_index: int) -> Any:
     cfg, policy = _STATE["cfg"], _STATE["policy"]
     if task_index not in _STATE["envs"]:
         kw: dict[str, Any] = {"image_size": policy.spec.image_size, "cameras": tuple(policy.spec.cameras)}
-        if cfg.env == "tabletop":
+        if cfg.env in ("tabletop", "so101"):
             kw.update(realism=cfg.realism, perturb=cfg.perturb)
         else:
             kw.update(mesh_faces=cfg.libero_mesh_faces)
@@ -402,7 +403,7 @@ def _check_settings(cfg: EvalConfig) -> None:
                              f"{', '.join(FAMILY_OF_SPLIT[cfg.split])})")
         if cfg.condition not in seeds.CONDITIONS:
             raise SystemExit(f"--condition {cfg.condition!r}: with a seed family, one of {sorted(seeds.CONDITIONS)}")
-    if cfg.env == "tabletop" and cfg.perturb:
+    if cfg.env in ("tabletop", "so101") and cfg.perturb:
         try:
             family(cfg.env).parse_perturb(cfg.perturb)  # imports the twin only when it is evaluated
         except ValueError as e:
@@ -435,6 +436,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     thresholds = evaluation_thresholds(policy.calibration, cfg.executor)
     tau_high = thresholds["tau_high"] if thresholds else None
     gripper_head = getattr(policy, "gripper_head", None)
+    space = policy.spec.action_space  # what recorded rollouts' action rows mean
     del policy
     log_path = out / "episodes.jsonl"
     done = {_key(r): r for r in load_rows(log_path)}
@@ -459,7 +461,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
             if ep is not None and cfg.record:  # before the row: a logged episode always has its recording
                 # which evaluation it came from: pivla calibrate refuses test episodes
                 ep.meta.update(split=cfg.split, eval_seed=cfg.seed, perturb=cfg.perturb)
-                _record_part(Path(cfg.record), row, ep)
+                _record_part(Path(cfg.record), row, ep, space)
             atomic_write_json(out / "traces" / f"{row['task']}_{row['episode']:03d}.json", row)
             logf.write(json.dumps(row) + "\n")
             logf.flush()
@@ -488,28 +490,36 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
                | {"gripper_head": gripper_head, "thresholds": thresholds})
     atomic_write_json(out / "results.json", results)
     if cfg.record:  # after results.json: a missing recording must not cost the evaluation its results
-        _merge_rollouts(Path(cfg.record), rows)
+        _merge_rollouts(Path(cfg.record), rows, space)
     return results
 
 
 def _write_video(folder: Path, row: dict, ep: Any) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    views = [ep.obs[k] for k in ("agentview_rgb", "eye_in_hand_rgb") if k in ep.obs]
+    views = [ep.obs[k] for k in _camera_keys(ep.obs)]
     frames = np.concatenate(views, axis=2).repeat(2, axis=1).repeat(2, axis=2)
     tag = "success" if row["success"] else "failure"
     write_mp4(folder / f"{row['task']}_{row['episode']:03d}_{tag}.mp4", frames, 10)
+
+
+def _camera_keys(obs: dict) -> list[str]:
+    """The episode's pictures, side by side in a video: the twin's and LIBERO's agent view then wrist camera, else
+    every (T, H, W, 3) uint8 observation (the SO-101 twin's front and wrist) in key order."""
+    named = [k for k in ("agentview_rgb", "eye_in_hand_rgb") if k in obs]
+    return named or sorted(k for k, v in obs.items()
+                           if getattr(v, "ndim", 0) == 4 and v.shape[-1] == 3 and v.dtype == np.uint8)
 
 
 def _part_path(root: Path, row: dict) -> Path:
     return root / PARTS_DIR / f"{row['task']}_{row['episode']:04d}.hdf5"
 
 
-def _record_part(root: Path, row: dict, ep: Any) -> None:
+def _record_part(root: Path, row: dict, ep: Any, space: ActionSpace) -> None:
     """Write one finished episode at once (atomically), so an interrupted evaluation keeps its recordings."""
-    write_episodes(_part_path(root, row), [ep])
+    write_episodes(_part_path(root, row), [ep], action_space=space)
 
 
-def _merge_rollouts(root: Path, rows: list[dict]) -> None:
+def _merge_rollouts(root: Path, rows: list[dict], space: ActionSpace) -> None:
     """``<task>_rollouts.hdf5`` per task from the per-episode parts, in episode order (so the file does not
     depend on which worker finished first). The parts stay (hidden from dataset readers): a later resume with
     more episodes rebuilds the files from them."""
@@ -522,4 +532,4 @@ def _merge_rollouts(root: Path, rows: list[dict]) -> None:
                 "missing (evaluated without --record, or by an older version); evaluate into a new --out to record it")
         by_task.setdefault(row["task"], []).extend(read_episodes(part))
     for task, eps in by_task.items():
-        write_episodes(root / f"{task}_rollouts.hdf5", eps)
+        write_episodes(root / f"{task}_rollouts.hdf5", eps, action_space=space)
