@@ -21,10 +21,11 @@ Datasheet and control-table figures used (Feetech STS3215, the SO-101 follower's
 stall torque 19.5 kg cm (1.91 N m) at 7.4 V; no-load speed 0.222 s/60 deg (45 rpm, 4.72 rad/s) at 7.4 V; 12-bit
 magnetic encoder, 4096 steps/turn; dead zone 1 step (registers 26/27); acceleration unit 100 steps/s^2
 (register 41). ``ServoConfig.c018()`` gives the 12 V, 30 kg cm version (SO-101 "Pro" kits), 0.133 s/60 deg.
-The proportional gain is not in any datasheet: the MJCF's kp, 17.8 N m/rad, comes from the Open Duck Mini
-project's identification of an STS3215 at the firmware's default P = 32 (assets/so101/README.md upstream), and is
-scaled here linearly to LeRobot's P = 16: 8.9 N m/rad. The joints' passive damping, friction loss and armature
-(0.60 N m s/rad, 0.052 N m, 0.028 kg m^2, same source) stay as the MJCF has them in both modes. Backlash (spec
+The proportional gain is in no datasheet: the MJCF's kp, 17.8 N m/rad, sits in its "sts3215" class, whose
+parameters upstream took from the Open Duck Mini project (NOTICE), with a comment that LeRobot's Kp = 16 would
+need an identification of its own. Assuming the firmware's default P = 32 there and a torque linear in P, LeRobot's
+P = 16 gives 8.9 N m/rad. The joints' passive damping, friction loss and armature (0.60 N m s/rad, 0.052 N m,
+0.028 kg m^2, same class) stay as the MJCF has them in both modes. Backlash (spec
 <= 0.5 deg, about 1 deg measured on 12 V servos: TheRobotStudio/SO-ARM100 issue #134) is not modelled.
 """
 
@@ -50,7 +51,7 @@ class ServoConfig:
     stall_torque: float = 19.5 * KG_CM  # N m at 7.4 V (C001)
     max_speed: float = _speed(0.222)  # rad/s, no-load at 7.4 V
     acceleration: float = 254 * 100 * RAD_PER_STEP  # rad/s^2: LeRobot's Acceleration = 254 (x 100 steps/s^2)
-    kp: float = 17.8 * 16 / 32  # N m/rad: the MJCF's identified gain at P = 32, at LeRobot's P = 16
+    kp: float = 17.8 * 16 / 32  # N m/rad: the MJCF's gain, taken as P = 32's, at LeRobot's P = 16
     deadband_steps: int = 1  # CW/CCW dead zone (registers 26/27), factory default
     gripper_torque_share: float = 0.5  # LeRobot's Max_Torque_Limit 500 / 1000 on the gripper
 
