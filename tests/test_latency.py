@@ -152,6 +152,104 @@ def test_async_aurd_refuses_the_after_check():
         episode("aurd", AsyncConfig(), "100", check="after")
 
 
+def same_decisions(sync, asynchronous):
+    """The async episode made every decision of the sync one: actions, plan log, queries, and every field of each
+    sync trace row (async rows add their own: chunk, sent, offset, cut)."""
+    assert np.array_equal(sync.actions, asynchronous.actions)
+    assert sync.plans == asynchronous.plans and sync.queries == asynchronous.queries
+    assert len(sync.trace) == len(asynchronous.trace)
+    for a, b in zip(sync.trace, asynchronous.trace, strict=True):
+        assert {k: b.get(k) for k in a} == a, (a, b)
+
+
+@pytest.mark.parametrize("script, options", [
+    ({"latent_error": {2: 2.0, 3: 2.0, 8: 2.0}}, {}),  # replan, then a committed plan
+    ({"latent_error": {2: 2.0, 3: 2.0, 8: 2.0}}, {"monitor": False}),
+    ({"latent_error": {2: 2.0, 3: 2.0, 4: 2.0}}, {"commit_after_cut": False}),  # cut after cut
+    ({"u_act": [1.0] + [0] * 7}, {}),  # pause, then a committed plan
+    ({"u_act": [1.0] + [0] * 7}, {"commit_after_cut": False, "max_pauses": 2}),  # pauses, then forced
+    ({"u_act": [0, 0.4, 0, 0, 0, 0, 0, 0], "values": [1, 0.1, 1, 1, 1]}, {"max_pauses": 0}),  # prune
+])
+def test_async_aurd_at_zero_latency_with_the_auto_threshold_is_sync_aurd(script, options):
+    sync = episode("aurd", SyncConfig(), "0", policy=ScriptedPolicy(**script), steps=20, **options)
+    asynchronous = episode("aurd", AsyncConfig(threshold="auto"), "0", policy=ScriptedPolicy(**script), steps=20,
+                           **options)
+    assert any(event != "complete" for _, event in sync.plans)
+    same_decisions(sync, asynchronous)
+
+
+def test_async_aurd_with_a_fixed_threshold_at_zero_latency_waits_for_the_plan():
+    # threshold 2 at 0 ms: the answer sent with 2 actions left is here at once but waits until the plan has run its
+    # horizon, then starts 2 actions in (a chunk from an observation 2 steps old); its first step is tested on
+    # U_act alone, as the synchronous AURD's step 0 (its own actions have had no outcome yet)
+    r = episode("aurd", AsyncConfig(threshold=2), "0", steps=12)
+    assert played(r) == [(1, 0), (1, 1), (1, 2), (1, 3), (1, 4), (2, 2), (2, 3), (2, 4), (2, 5), (2, 6), (3, 2),
+                         (3, 3)]
+    assert r.plans == [(5, "complete"), (5, "complete")] and r.trace[5]["u_pred"] == 0.0
+
+
+def test_the_auto_threshold_sends_so_that_the_chunk_lands_as_the_plan_runs_out():
+    # d steps of delay: the threshold is d, so a query goes out when d actions remain (t = 5, 10, ... with H = 5)
+    # and lands as the plan runs out; the arm idles only while the first chunk is in flight
+    for ms, d in (("0", 0), ("100", 1), ("200", 2), ("300", 3), ("200:60", 2)):
+        r = episode("fixed", AsyncConfig(threshold="auto"), ms, horizon=5, steps=30, seed=4)
+        sent = [row["t"] for row in r.trace if "sent" in row]
+        offsets = [row["offset"] for row in r.trace if row.get("replanned")]
+        if ":" in ms:  # jitter: the threshold is the mean's 2 steps; a late answer costs idle steps, an early one
+            assert 2 in offsets and set(offsets) != {2}  # takes over when it arrives
+            continue
+        assert sent == [0, 5, 10, 15, 20, 25] and offsets == [d] * 6, ms
+        assert [row["t"] for row in r.trace if row.get("idle")] == list(range(d)), ms
+    sync = episode("fixed", SyncConfig(), "0", horizon=5, steps=30)
+    auto0 = episode("fixed", AsyncConfig(threshold="auto"), "0", horizon=5, steps=30)
+    assert np.array_equal(sync.actions, auto0.actions) and sync.queries == auto0.queries
+
+
+def test_the_auto_threshold_on_a_wall_clock_link_follows_the_measured_round_trips():
+    from pivla.control.latency import WallClockLink
+
+    link = WallClockLink(ScriptedPolicy(), 10)
+    try:
+        assert link.expected_delay_steps() == 0  # nothing measured yet
+        link.stats.delays.extend([2, 2, 3])
+        assert link.expected_delay_steps() == 3  # the mean (2.33 steps) rounded up
+        link.stats.delays[:] = [2, 2]
+        assert link.expected_delay_steps() == 2
+    finally:
+        link.close()
+
+
+@pytest.mark.parametrize("threshold", [-1, "soon", 1.5, True])
+def test_a_bad_threshold_is_named(threshold):
+    from pivla.control.asynchronous import check_execution
+
+    with pytest.raises(ValueError, match="execution.threshold must be 'auto' or a number of actions"):
+        check_execution(AsyncConfig(threshold=threshold), executor_config("fixed"))
+
+
+def test_async_aurd_at_latency_cuts_a_late_chunks_untrusted_first_step_instead_of_pausing():
+    # every chunk's first executed step is untrusted on U_act; at 100 ms a chunk is one step late, so it answers
+    # an older observation: AURD sends a query from this one at once (no pause: the answer can differ)
+    u_act = [1.0] * 8
+    r = episode("aurd", AsyncConfig(threshold="auto"), "100", policy=ScriptedPolicy(u_act=u_act), steps=10)
+    cut = next(row for row in r.trace if row.get("cut"))
+    assert cut["t"] == 1 and cut["sent"] == "replan" and cut["plan_step"] == 1 and cut.get("event") is None
+    assert r.summary()["pauses"] == 0 and r.trace[2]["ended"] == "replan" and r.trace[2]["committed"]
+    zero = episode("aurd", AsyncConfig(threshold="auto"), "0", policy=ScriptedPolicy(u_act=u_act), steps=10)
+    assert zero.trace[0]["event"] == "pause" and zero.summary()["pauses"] >= 1
+
+
+def test_trace_events_are_the_strings_on_disk():
+    from pivla.control.math import Event
+
+    r = episode("aurd", AsyncConfig(threshold="auto"), "100", policy=ScriptedPolicy(latent_error={2: 2.0}))
+    text = json.dumps(r.trace)
+    assert '"cut": "replan"' in text and '"sent": "threshold"' in text and '"ended": "replan"' in text
+    assert all(type(v) is str for row in r.trace for k, v in row.items() if k in ("cut", "sent", "ended", "event")
+               and v is not None)
+    assert r.plans[0] == (2, Event.REPLAN) == (2, "replan") and r.summary()["replans"] == 1
+
+
 # -- faults ---------------------------------------------------------------------------------------------------
 def test_a_chunk_that_arrives_past_all_its_actions_is_dropped_and_counted():
     r = episode("fixed", AsyncConfig(threshold=2), "800", horizon=3, steps=20)  # 8 steps late, K = 8
@@ -250,10 +348,21 @@ def test_zero_latency_reproduces_todays_twin_episode_step_for_step(twin_policy, 
     assert today.trace == latency0.trace and today.plans == latency0.plans
     if name == "aurd":
         assert any(event != "complete" for _, event in today.plans), today.plans
-    if name != "aurd":  # asynchronous AURD has no pauses and no check of a fresh chunk's first step
-        asynchronous = run_episode(twin, policy, make_executor(name, **options), seed=5, max_steps=12,
-                                   execution=AsyncConfig(threshold=0), latency="0")
-        assert np.array_equal(today.actions, asynchronous.actions)
+    asynchronous = run_episode(twin, policy, make_executor(name, **options), seed=5, max_steps=12,
+                               execution=AsyncConfig(threshold="auto" if name == "aurd" else 0), latency="0")
+    assert np.array_equal(today.actions, asynchronous.actions)
+
+
+@pytest.mark.parametrize("seed", [3, 5, 8])
+def test_async_aurd_at_zero_latency_decides_as_sync_aurd_on_the_twin(twin_policy, twin, seed):
+    policy = twin_policy[1]
+    options = _aurd_options(twin, policy)
+    sync = run_episode(twin, policy, make_executor("aurd", **options), seed=seed, max_steps=30,
+                       execution=SyncConfig(), latency="0")
+    asynchronous = run_episode(twin, policy, make_executor("aurd", **options), seed=seed, max_steps=30,
+                               execution=AsyncConfig(), latency="0")  # the default threshold: auto
+    assert any(event != "complete" for _, event in sync.plans), sync.plans
+    same_decisions(sync, asynchronous)
 
 
 def test_latency_depends_on_the_seed_not_on_the_machine(twin_policy, twin):

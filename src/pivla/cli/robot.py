@@ -16,6 +16,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from pivla.control.asynchronous import ExecutionConfig, SyncConfig
 from pivla.control.executors import AURDConfig, ExecutorConfig
 
 log = logging.getLogger("pivla.robot")
@@ -398,6 +399,9 @@ class RunCommand:
     """What to do."""
     executor: ExecutorConfig = field(default_factory=AURDConfig)
     """How chunks become actions: --executor aurd | fixed | ensemble | adahorizon, then its options."""
+    execution: ExecutionConfig = field(default_factory=SyncConfig)
+    """--execution sync (query, then act) or async (the next query in flight while the arm executes; then
+    --execution.threshold, --execution.seam; docs/latency.md)."""
     episodes: int = 1
     """Episodes to run."""
     max_steps: int = 300
@@ -414,7 +418,8 @@ def run_policy(cmd: RunCommand) -> int:
 
     policy = open_policy(cmd.policy, api_key=cmd.api_key)
     with _rig(cmd.arm, cmd.cameras, cmd.instruction, max_steps=cmd.max_steps) as rig:
-        results = run_loop(rig.env, policy, cmd.executor, episodes=cmd.episodes, seed=cmd.arm.seed)
+        results = run_loop(rig.env, policy, cmd.executor, episodes=cmd.episodes, seed=cmd.arm.seed,
+                           execution=cmd.execution)
     print(json.dumps(results, default=str, indent=2))
     return 0
 

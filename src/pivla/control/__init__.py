@@ -3,7 +3,7 @@
 The math is in :mod:`pivla.control.math` as pure functions; executors in :mod:`pivla.control.executors`.
 """
 
-from pivla.control.executors import EXECUTORS, make_executor
+from pivla.control.executors import EXECUTOR_REGISTRY, make_executor
 from pivla.control.math import (
     action_uncertainty,
     adahorizon,
@@ -19,7 +19,7 @@ from pivla.control.math import (
 from pivla.control.runner import EpisodeResult, ExecutorActor, run_episode
 
 __all__ = [
-    "EXECUTORS", "EpisodeResult", "ExecutorActor", "action_uncertainty", "adahorizon", "composite_uncertainty",
+    "EXECUTOR_REGISTRY", "EpisodeResult", "ExecutorActor", "action_uncertainty", "adahorizon", "composite_uncertainty",
     "decide_horizon", "dequantize", "ensemble_weights", "make_executor", "prediction_uncertainty", "run_episode",
     "step_event", "surprise", "temporal_ensemble",
 ]

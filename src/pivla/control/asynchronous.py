@@ -8,9 +8,10 @@ is usable from step s + d.
   then the chunk starts at its first action, as if it had come at once (the arm did not move meanwhile).
   The executors run unchanged; at zero latency the episode is today's, step for step.
 - ``async`` (:class:`AsyncConfig`): the next query is sent while the current chunk still executes, when
-  ``threshold`` actions of the current plan remain (LeRobot's ``chunk_size_threshold``, counted in actions)
-  and, for AURD, when U and V cut the plan. A chunk sent at step s and arriving at step t starts with its
-  action t - s: the actions for the steps that passed are skipped. At most one query is in flight.
+  ``threshold`` actions of the current plan remain (LeRobot's ``chunk_size_threshold``, counted in actions;
+  ``auto`` below) and, for AURD, when U and V cut the plan. A chunk sent at step s and arriving at step t
+  starts with its action t - s: the actions for the steps that passed are skipped. At most one query is in
+  flight.
 
 A chunk's executor horizon counts from the first action it executes (fixed: ``horizon``; AdaHorizon: its
 choice on the chunk's remaining U_act; AURD: H) and is never exceeded: a plan that runs out before the next
@@ -26,14 +27,22 @@ and counted (``stale``); an answer that is not for the query in flight (another 
 executed and counted (``out_of_order``); a query the link lost is counted (``failed``) and sent again at
 the next trigger.
 
-AURD asynchronously: each step of the current plan is tested as in the synchronous AURD (U from U_act and
-U_pred, V, ``tau_low`` / ``tau_high`` / ``v_thresh``), except a chunk's first step when it answers this very
-step's observation (U_pred is 0 and the same query would return the same chunk). A test that cuts the plan
-("replan", "prune") sends a query from this observation and marks it to replace the rest of the plan the
-moment it arrives (or takes a newer chunk already waiting); the untrusted steps execute while it is in
-flight, none at zero latency. A chunk sent on the threshold instead waits until the current plan completes.
-The plan made after a cut runs unchecked (``commit_after_cut``). There are no pauses and only
-``check="before"``.
+The threshold ``auto`` (the default) is the link's expected delay in control steps (the latency's mean at the
+control rate; with ``real`` latency the mean of the measured round trips): at zero latency it is 0 and async
+plays the sync episode for every executor; at d steps of delay a query sent with d actions left lands as the
+plan runs out.
+
+AURD asynchronously (:class:`AsyncAURDExecutor`) makes the synchronous AURD's decisions with the next plan's
+query sent ahead: each step of the current plan is tested as synchronously (U from U_act and U_pred, V,
+``tau_low`` / ``tau_high`` / ``v_thresh``; U_pred 0 at the plan's first executed step); an untrusted first step
+of a plan made from this very observation is a pause; any other untrusted step is a cut ("replan", "prune")
+that sends a query from this observation (unless one is in flight) whose chunk replaces the rest of the plan the
+moment it arrives (or takes a newer chunk already waiting); the untrusted steps execute while it is in flight,
+none at zero latency. A chunk sent on the threshold instead waits until the current plan completes. The plan
+made after a cut runs unchecked (``commit_after_cut``). Only ``check="before"``.
+
+An arm on absolute targets (joint positions) has no hold command before its first action: the loop waits for
+the episode's first answer instead (the arm has not moved).
 
 ACT ensembling asynchronously: a query whenever none is in flight; each step averages every arrived chunk's
 prediction for that step (chunks indexed from the step they were sent), or holds when none reaches it.
@@ -43,12 +52,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import Any, ClassVar, Literal
 
 import numpy as np
 
 from pivla.control.contract import ChunkPolicy
 from pivla.control.executors import (
+    AURDSettings,
     BaseExecutor,
     ExecutorConfig,
     Plan,
@@ -57,9 +68,9 @@ from pivla.control.executors import (
 )
 from pivla.control.latency import Arrival, Latency, make_link
 from pivla.control.math import (
+    Event,
     adahorizon,
     combine_uncertainty,
-    step_event,
     temporal_ensemble,
 )
 
@@ -74,15 +85,20 @@ class SyncConfig:
     kind: ClassVar[str] = "sync"
 
 
+AUTO = "auto"
+
+
 @dataclass
 class AsyncConfig:
     """Send the next query while the current chunk executes; a chunk that arrives skips the actions of the
     steps that passed (docs/latency.md)."""
 
     kind: ClassVar[str] = "async"
-    threshold: int = 2
+    threshold: int | Literal["auto"] = AUTO
     """Send the next query when this many actions of the current plan remain (LeRobot's chunk_size_threshold,
-    in actions); AURD also sends when U and V cut its plan."""
+    in actions); auto: the expected delay in control steps (the latency's mean at the control rate; measured
+    round trips with --latency-ms real), so that at 0 ms async is sync and the new chunk lands as the old one
+    runs out. AURD also sends when its test cuts the plan."""
     seam: Literal["switch", "blend"] = "switch"
     """How a new chunk takes over: switch (its due action at once), or blend (its first blend_steps actions
     mixed linearly with the old chunk's)."""
@@ -97,8 +113,9 @@ def check_execution(execution: ExecutionConfig, executor: ExecutorConfig) -> Non
     """A ValueError naming the problem with an execution mode for an executor (before any episode runs)."""
     if execution.kind != "async":
         return
-    if execution.threshold < 0:
-        raise ValueError(f"execution.threshold must be >= 0 actions, got {execution.threshold}")
+    g = execution.threshold
+    if g != AUTO and (isinstance(g, bool) or not isinstance(g, int) or g < 0):
+        raise ValueError(f"execution.threshold must be 'auto' or a number of actions >= 0, got {g!r}")
     if execution.seam not in ("switch", "blend"):
         raise ValueError(f"execution.seam must be 'switch' or 'blend', got {execution.seam!r}")
     if execution.blend_steps < 1:
@@ -107,11 +124,36 @@ def check_execution(execution: ExecutionConfig, executor: ExecutorConfig) -> Non
         raise ValueError("asynchronous AURD tests each step before it executes: use check='before'")
 
 
+class Sent(StrEnum):
+    """Why a query went out (a trace row's ``sent``): the threshold, or the AURD test that cut the plan."""
+
+    THRESHOLD = "threshold"
+    REPLAN = Event.REPLAN.value
+    PRUNE = Event.PRUNE.value
+
+
+class Dropped(StrEnum):
+    """An answer that was not executed (a trace row's ``dropped``)."""
+
+    STALE = "stale"  # the episode had moved past all its actions
+    OUT_OF_ORDER = "out_of_order"  # not the answer to the query in flight
+    FAILED = "failed"  # the link lost the query
+
+
+@dataclass(frozen=True)
+class _Cut:
+    """AURD's test that did not trust a step: its event (REPLAN or PRUNE), U and V."""
+
+    event: Event
+    u: float
+    v: float
+
+
 @dataclass
 class _Query:
     id: int
     sent: int  # control step whose observation it carries
-    cut: str | None = None  # AURD: the test that sent it or waits for it; its chunk replaces the plan on arrival
+    cut: _Cut | None = None  # AURD: the test that sent it or waits for it; its chunk replaces the plan on arrival
 
 
 @dataclass
@@ -120,9 +162,10 @@ class _Chunk:
 
     plan: Plan
     id: int
+    sent: int  # control step whose observation it answers
     start: int  # actions skipped: they were due while it was in flight
     stop: int  # plan steps before this one are executable (its executor horizon)
-    event: str = "complete"  # how it ends when it reaches ``stop`` (AdaHorizon's choice)
+    event: Event = Event.COMPLETE  # how it ends when it reaches ``stop`` (AdaHorizon's choice)
     committed: bool = False  # AURD: made after a cut, runs unchecked
     k: int = 0
 
@@ -135,10 +178,20 @@ class _Chunk:
         return self.stop - self.step
 
 
+@dataclass(frozen=True)
+class _Test:
+    """AURD's test of the step about to execute: its U_pred, U and V, and the event it raises (None: trusted, or
+    the plan is committed)."""
+
+    u_pred: float
+    u: float
+    v: float
+    event: Event | None
+
+
 class AsyncExecutor(BaseExecutor):
-    """fixed, AdaHorizon or AURD with the next query in flight while the current chunk executes (module
-    docstring). The synchronous executor of the same config supplies the thresholds and U_pred (with its
-    episode floor) exactly as it forms them."""
+    """fixed or AdaHorizon with the next query in flight while the current chunk executes (module docstring):
+    a query goes out when ``threshold`` actions remain, and its chunk takes over the moment it arrives."""
 
     def __init__(self, cfg: ExecutorConfig, execution: AsyncConfig):
         self.inner = make_executor(cfg)
@@ -152,70 +205,81 @@ class AsyncExecutor(BaseExecutor):
         self.inner.reset()
         self._chunk: _Chunk | None = None
         self._pending: _Query | None = None
-        self._ready: tuple[Arrival, _Query] | None = None  # AURD: arrived, waiting for the plan to complete
+        self._ready: tuple[Arrival, _Query] | None = None  # arrived, not executing yet
         self._blend = np.zeros((0, 7), np.float32)
-        self._settings: tuple | None = None
-        self._z: tuple[int, np.ndarray] | None = None  # this step's observed latent, encoded once
-        self._tested: tuple[tuple[int, int, int], dict] | None = None  # (step, chunk, plan step) -> its test
+        self._settings: Any = None
         self.stale = self.out_of_order = 0
         self._row: dict[str, Any] = {}
 
-    def _setup(self, policy: ChunkPolicy) -> tuple:
-        if self.cfg.kind == "aurd":
-            return (*self.inner._thresholds(policy), self.inner._pred_baseline(policy),
-                    self.cfg.horizon or policy.spec.horizon)
-        if self.cfg.kind == "adahorizon":
-            return self.inner._thresholds(policy)
-        return ()
+    def _setup(self, policy: ChunkPolicy) -> Any:
+        return self.inner._thresholds(policy) if self.cfg.kind == "adahorizon" else ()
+
+    def threshold(self) -> int:
+        """Actions left in the current plan when the next query goes out (``auto``: the link's expected delay)."""
+        g = self.execution.threshold
+        return self.link.expected_delay_steps() if g == AUTO else int(g)
 
     def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
         if self._settings is None:
             self._settings = self._setup(policy)
         t, self._row = self.t, {}
         self._receive(t)
-        test = self._test(policy, obs, t)
-        cut = test.get("event")
-        if cut is not None:
-            self._row.update(cut=cut, cut_u=test["u"], cut_v=test["v"])
-            if self._ready is not None:  # a newer chunk is already here: it replaces the rest now
-                self._switch(t, cut)
-            elif self._pending is not None:
-                self._pending.cut = self._pending.cut or cut
-            else:
-                self._send(obs, t, cut)
-        elif self._pending is None and self._ready is None and self._remaining() <= self.execution.threshold:
+        self._take_over(t)
+        if self._due():
             self._send(obs, t, None)
-        return self._execute(policy, obs, t)
+        self._await_first_chunk(policy, t)
+        return self._execute(policy, obs, t, self._signals(policy, obs, t))
 
     # -- queries and arrivals --------------------------------------------------------------------------
     def _remaining(self) -> int:
         return 0 if self._chunk is None else max(self._chunk.remaining, 0)
 
-    def _send(self, obs: dict, t: int, cut: str | None) -> None:
+    def _due(self) -> bool:
+        """The threshold's query: none in flight or waiting, and at most ``threshold`` actions left."""
+        return self._pending is None and self._ready is None and self._remaining() <= self.threshold()
+
+    def _send(self, obs: dict, t: int, cut: _Cut | None) -> None:
         self._pending = _Query(self.link.send(obs, t), t, cut)
         self.queries += 1
-        self._row["sent"] = cut or "threshold"
+        self._row["sent"] = Sent(cut.event.value) if cut else Sent.THRESHOLD
         self._receive(t)  # at zero latency the chunk is here at once
+        self._take_over(t)
 
     def _receive(self, t: int) -> None:
         for arrival in self.link.arrivals(t):
-            query = self._pending
-            if query is None or arrival.id != query.id:  # not the observation in flight: never executed
-                self.out_of_order += 1
-                self._row.setdefault("dropped", []).append("out_of_order")
-                continue
-            self._pending = None
-            if arrival.output is None:  # the link lost it (counted by the link); the next trigger sends again
-                self._row.setdefault("dropped", []).append("failed")
-                continue
-            self._ready = (arrival, query)
-        if self._ready is None:
-            return
-        query = self._ready[1]
-        if query.cut is not None or self.cfg.kind != "aurd" or self._remaining() == 0:
-            self._switch(t, query.cut)
+            self._accept(arrival)
 
-    def _switch(self, t: int, cut: str | None) -> None:
+    def _accept(self, arrival: Arrival) -> None:
+        query = self._pending
+        if query is None or arrival.id != query.id:  # not the observation in flight: never executed
+            self.out_of_order += 1
+            self._row.setdefault("dropped", []).append(Dropped.OUT_OF_ORDER)
+            return
+        self._pending = None
+        if arrival.output is None:  # the link lost it (counted by the link); the next trigger sends again
+            self._row.setdefault("dropped", []).append(Dropped.FAILED)
+            return
+        self._ready = (arrival, query)
+
+    def _await_first_chunk(self, policy: ChunkPolicy, t: int) -> None:
+        """An arm on absolute targets (joint positions) has no hold command before its first action: until the
+        first chunk is there the loop waits for it instead (the arm has not moved), and it starts at its first
+        action. A first answer the link lost leaves nothing to hold: ConnectionError."""
+        if self.last_action is not None or not policy.spec.action_space.kind.absolute:
+            return
+        while self._chunk is None and self._pending is not None:
+            self._accept(self.link.wait(self._pending.id))
+            self._take_over(t)
+        if self._chunk is None:
+            raise ConnectionError("the policy's first answer was lost, and an arm on absolute targets has no pose "
+                                  "to hold before its first action")
+
+    def _take_over(self, t: int) -> None:
+        """fixed and AdaHorizon: an answer takes over the moment it arrives."""
+        if self._ready is not None:
+            self._switch(t)
+
+    def _switch(self, t: int) -> None:
         """The waiting answer becomes the current chunk, at the action due now (or is dropped as stale)."""
         arrival, query = self._ready
         self._ready = None
@@ -223,63 +287,46 @@ class AsyncExecutor(BaseExecutor):
         start = t - query.sent
         if start >= len(plan.actions):
             self.stale += 1
-            self._row.setdefault("dropped", []).append("stale")
+            self._row.setdefault("dropped", []).append(Dropped.STALE)
             return
         old = self._chunk
         ended = None
         if old is not None:
-            ended = cut or (old.event if old.remaining <= 0 else "switch")
+            ended = query.cut.event if query.cut else (old.event if old.remaining <= 0 else Event.SWITCH)
             self.plans.append((old.k, ended))
             if self.execution.seam == "blend":
                 self._blend = old.plan.actions[old.step:old.stop][: self.execution.blend_steps]
         stop, event = self._horizon(plan, start)
-        committed = cut is not None and self.cfg.kind == "aurd" and self.cfg.commit_after_cut
-        self._chunk = _Chunk(plan, query.id, start, stop, event, committed)
+        self._chunk = _Chunk(plan, query.id, query.sent, start, stop, event, self._commits())
         self._row.update(replanned=True, ended=ended, offset=start)
+        if query.cut:
+            self._row.update(ended_u=query.cut.u, ended_v=query.cut.v)
 
-    def _horizon(self, plan: Plan, start: int) -> tuple[int, str]:
+    def _commits(self) -> bool:
+        """Whether the chunk taking over now runs unchecked (AURD's commit after a cut)."""
+        return False
+
+    def _horizon(self, plan: Plan, start: int) -> tuple[int, Event]:
         """The plan step this chunk stops before, counted from its first executed action, and how it ends."""
         left = len(plan.actions) - start
         if self.cfg.kind == "adahorizon":
             h, event = adahorizon(plan.u_act[start:], self.cfg.min_exec, *self._settings)
             return start + h, event
-        h = self.cfg.horizon if self.cfg.kind == "fixed" else self._settings[-1]
-        return start + min(h, left), "complete"
+        return start + min(self._nominal_horizon(), left), Event.COMPLETE
 
-    # -- AURD's test ------------------------------------------------------------------------------------
-    def _encoded(self, policy: ChunkPolicy, obs: dict, t: int, monitoring: bool) -> np.ndarray:
-        if self._z is None or self._z[0] != t:
-            if monitoring:
-                with self._monitoring():
-                    self._z = (t, policy.encode(obs))
-            else:
-                self._z = (t, policy.encode(obs))
-        return self._z[1]
-
-    def _test(self, policy: ChunkPolicy, obs: dict, t: int) -> dict[str, Any]:
-        """AURD: U_pred, U and V of the step about to execute and, unless its plan is committed or it is the
-        first step of an answer to this very observation, the event its test raises."""
-        c = self._chunk
-        if self.cfg.kind != "aurd" or c is None or c.remaining <= 0:
-            return {}
-        if self._tested is not None and self._tested[0] == (t, c.id, c.step):
-            return self._tested[1]  # tested once: U_pred's episode floor moves with every measurement
-        tau_low, tau_high, v_thresh, eta, baseline, _ = self._settings
-        j = c.step
-        tested = not c.committed and j > 0
-        u_pred = 0.0
-        if j > 0 and (tested or self.monitor):
-            z = self._encoded(policy, obs, t, monitoring=not tested)
-            u_pred = self.inner._u_pred(z, c.plan.latents[j - 1], baseline)
-        u = combine_uncertainty(float(c.plan.u_act[j]), u_pred, eta)
-        v = c.plan.value(j)
-        event = step_event(u, v, tau_low, tau_high, v_thresh) if tested else None
-        result = {"u_pred": u_pred, "u": u, "v": v, "event": event}
-        self._tested = ((t, c.id, j), result)
-        return result
+    def _nominal_horizon(self) -> int:
+        return self.cfg.horizon
 
     # -- the action -------------------------------------------------------------------------------------
-    def _execute(self, policy: ChunkPolicy, obs: dict, t: int) -> np.ndarray:
+    def _signals(self, policy: ChunkPolicy, obs: dict, t: int) -> dict[str, Any]:
+        """A baseline's monitored U_pred and U of the step about to execute (trace only)."""
+        c = self._chunk
+        if c is None or c.remaining <= 0:
+            return {}
+        j = c.step
+        return self._monitored(policy, obs, None if j == 0 else c.plan.latents[j - 1], c.plan.u_act[j])
+
+    def _execute(self, policy: ChunkPolicy, obs: dict, t: int, signals: dict[str, Any]) -> np.ndarray:
         c = self._chunk
         row = self._row
         if c is None or c.remaining <= 0:
@@ -289,11 +336,6 @@ class AsyncExecutor(BaseExecutor):
         if c.k < len(self._blend):
             w = (c.k + 1) / (self.execution.blend_steps + 1)
             action[MOTION] = (1 - w) * self._blend[c.k][MOTION] + w * action[MOTION]
-        if self.cfg.kind == "aurd":
-            test = self._test(policy, obs, t)  # the executed step's signals (after a switch: the new chunk's)
-            signals = {"u_pred": test["u_pred"], "u": test["u"], "committed": c.committed}
-        else:
-            signals = self._monitored(policy, obs, None if j == 0 else c.plan.latents[j - 1], c.plan.u_act[j])
         c.k += 1
         if c.k >= len(self._blend):
             self._blend = self._blend[:0]
@@ -302,6 +344,137 @@ class AsyncExecutor(BaseExecutor):
         extra = {"h_exec": c.stop - c.start} if self.cfg.kind == "adahorizon" else {}
         return self._emit(action, plan_step=j, u_act=c.plan.u_act[j], **signals, v=c.plan.value(j), chunk=c.id,
                           **extra, **row)
+
+
+class AsyncAURDExecutor(AsyncExecutor):
+    """AURD as the trigger of asynchronous execution: the synchronous AURD's decisions with the query for the next
+    plan sent ``threshold`` actions before the current one completes (module docstring). At zero latency with
+    ``threshold="auto"`` (0) every decision, action and trace field of the synchronous AURD is reproduced."""
+
+    def reset(self) -> None:
+        super().reset()
+        self._pauses = 0
+        self._z: tuple[int, np.ndarray] | None = None  # this step's observed latent, encoded once
+        self._tested: tuple[tuple[int, int, int], _Test] | None = None  # (step, chunk, plan step) -> its test
+
+    def _setup(self, policy: ChunkPolicy) -> AURDSettings:
+        return AURDSettings.of(self.cfg, policy)
+
+    def _nominal_horizon(self) -> int:
+        return self._settings.horizon
+
+    def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
+        """One control step:
+
+        1. an answer that arrived takes over when its query was sent on a cut (the rest of the current plan is
+           dropped), or when the current plan has run its horizon; otherwise it waits;
+        2. test the current plan's step about to execute, as the synchronous AURD does (U_pred = 0 at the plan's
+           first executed step; a committed plan runs unchecked);
+        3. trusted: send the threshold's query when it is due (at zero latency it arrives and takes over at once:
+           back to 2 for the new plan's step);
+        4. untrusted at the first step of a plan made from this very observation: PAUSE, hold pose one step (the
+           same query would return the same chunk; the next step queries), or FORCED after ``max_pauses``;
+        5. untrusted otherwise, a cut (REPLAN or PRUNE): a newer chunk already waiting takes over now; else the
+           query in flight, or a new one from this observation, will replace the rest of the plan on arrival
+           (at zero latency at once: back to 2); its untrusted steps execute meanwhile, within its horizon."""
+        if self._settings is None:
+            self._settings = self._setup(policy)
+        t, self._row = self.t, {}
+        self._receive(t)
+        if self._chunk is None and self._pending is None and self._ready is None:
+            self._send(obs, t, None)
+        self._await_first_chunk(policy, t)
+        while True:
+            self._take_over(t)
+            test = self._test(policy, obs, t)
+            chunk = self._chunk
+            if test is None or test.event is None:
+                if not self._due():
+                    break
+                self._send(obs, t, None)
+                if self._chunk is chunk:
+                    break
+                continue
+            if chunk.k == 0 and chunk.sent == t:
+                if self._pauses < self.cfg.max_pauses and self._can_hold(policy):
+                    return self._pause(policy, test)
+                break  # FORCED
+            cut = _Cut(test.event, test.u, test.v)
+            self._row.update(cut=cut.event, cut_u=cut.u, cut_v=cut.v)
+            if self._ready is not None:
+                self._ready[1].cut = cut
+            elif self._pending is not None:
+                self._pending.cut = self._pending.cut or cut
+                break
+            else:
+                self._send(obs, t, cut)
+                if self._chunk is chunk:
+                    break
+        return self._execute(policy, obs, t, self._signals(policy, obs, t))
+
+    def _take_over(self, t: int) -> None:
+        if self._ready is None:
+            return
+        if self._ready[1].cut is not None or self._remaining() == 0:
+            self._switch(t)
+
+    def _commits(self) -> bool:
+        """The plan made right after a cut (the plan log's last entry is not COMPLETE) runs unchecked."""
+        return self.cfg.commit_after_cut and bool(self.plans) and self.plans[-1][1] != Event.COMPLETE
+
+    def _can_hold(self, policy: ChunkPolicy) -> bool:
+        return self.last_action is not None or not policy.spec.action_space.kind.absolute
+
+    def _pause(self, policy: ChunkPolicy, test: _Test) -> np.ndarray:
+        """Hold pose one step instead of a plan's untrusted first step; the plan ends (PAUSE, H_exec = 0)."""
+        c = self._chunk
+        self._pauses += 1
+        self.plans.append((c.k, Event.PAUSE))
+        self._chunk = None
+        row = self._row
+        return self._emit(self.hold_action(policy.spec.action_space), plan_step=c.step,
+                          replanned=row.pop("replanned", False), u_act=c.plan.u_act[c.step], u_pred=test.u_pred,
+                          u=test.u, v=test.v, event=Event.PAUSE, ended=row.pop("ended", None), committed=False,
+                          chunk=c.id, **row)
+
+    def _encoded(self, policy: ChunkPolicy, obs: dict, t: int, monitoring: bool) -> np.ndarray:
+        if self._z is None or self._z[0] != t:
+            if monitoring:
+                with self._monitoring():
+                    self._z = (t, policy.encode(obs))
+            else:
+                self._z = (t, policy.encode(obs))
+        return self._z[1]
+
+    def _test(self, policy: ChunkPolicy, obs: dict, t: int) -> _Test | None:
+        """AURD's test of the current plan's step about to execute (None: no step to execute). U_pred compares
+        this observation with the plan's prediction of it, from the plan's second executed step on (before that
+        the plan's own actions have had no outcome yet: 0, as the synchronous AURD's step 0)."""
+        c = self._chunk
+        if c is None or c.remaining <= 0:
+            return None
+        key = (t, c.id, c.step)
+        if self._tested is not None and self._tested[0] == key:
+            return self._tested[1]  # tested once: U_pred's episode floor moves with every measurement
+        s, j = self._settings, c.step
+        u_pred = 0.0
+        if c.k > 0 and (not c.committed or self.monitor):
+            z = self._encoded(policy, obs, t, monitoring=c.committed)
+            u_pred = self._u_pred(z, c.plan.latents[j - 1], s.pred_baseline)
+        u, v = combine_uncertainty(float(c.plan.u_act[j]), u_pred, s.eta), c.plan.value(j)
+        test = _Test(u_pred, u, v, None if c.committed else s.test(u, v))
+        self._tested = (key, test)
+        return test
+
+    def _signals(self, policy: ChunkPolicy, obs: dict, t: int) -> dict[str, Any]:
+        test = self._test(policy, obs, t)
+        if test is None:
+            return {}
+        c = self._chunk
+        forced = test.event is not None and c.k == 0 and c.sent == t  # step 4 after max_pauses
+        self._pauses = 0
+        return {"u_pred": test.u_pred, "u": test.u, "event": Event.FORCED if forced else None,
+                "committed": c.committed}
 
 
 class AsyncEnsembleExecutor(BaseExecutor):
@@ -324,23 +497,26 @@ class AsyncEnsembleExecutor(BaseExecutor):
 
     def _receive(self, t: int) -> None:
         for arrival in self.link.arrivals(t):
-            query = self._pending
-            if query is None or arrival.id != query.id:
-                self.out_of_order += 1
-                self._row.setdefault("dropped", []).append("out_of_order")
-                continue
-            self._pending = None
-            if arrival.output is None:
-                self._row.setdefault("dropped", []).append("failed")
-                continue
-            plan = Plan.from_output(arrival.output)
-            if t - query.sent >= len(plan.actions):
-                self.stale += 1
-                self._row.setdefault("dropped", []).append("stale")
-                continue
-            self._history.append((query.sent, query.id, plan))
-            self.plans.append((1, "complete"))
-            self._row.update(replanned=True, offset=t - query.sent)
+            self._accept(arrival, t)
+
+    def _accept(self, arrival: Arrival, t: int) -> None:
+        query = self._pending
+        if query is None or arrival.id != query.id:
+            self.out_of_order += 1
+            self._row.setdefault("dropped", []).append(Dropped.OUT_OF_ORDER)
+            return
+        self._pending = None
+        if arrival.output is None:
+            self._row.setdefault("dropped", []).append(Dropped.FAILED)
+            return
+        plan = Plan.from_output(arrival.output)
+        if t - query.sent >= len(plan.actions):
+            self.stale += 1
+            self._row.setdefault("dropped", []).append(Dropped.STALE)
+            return
+        self._history.append((query.sent, query.id, plan))
+        self.plans.append((1, Event.COMPLETE))
+        self._row.update(replanned=True, offset=t - query.sent)
 
     def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
         t, self._row = self.t, {}
@@ -348,8 +524,14 @@ class AsyncEnsembleExecutor(BaseExecutor):
         if self._pending is None:
             self._pending = _Query(self.link.send(obs, t), t)
             self.queries += 1
-            self._row["sent"] = "threshold"
+            self._row["sent"] = Sent.THRESHOLD
             self._receive(t)
+        if not self._history and self.last_action is None and policy.spec.action_space.kind.absolute:
+            while not self._history and self._pending is not None:  # nothing to hold yet: wait (see AsyncExecutor)
+                self._accept(self.link.wait(self._pending.id), t)
+            if not self._history:
+                raise ConnectionError("the policy's first answer was lost, and an arm on absolute targets has no "
+                                      "pose to hold before its first action")
         self._history = [h for h in self._history if t - h[0] < len(h[2].actions)]
         row = self._row
         if not self._history:
@@ -365,9 +547,14 @@ class AsyncEnsembleExecutor(BaseExecutor):
                           v=newest.value(t - sent), chunk=qid, n_ensembled=len(preds), **row)
 
 
+_ASYNC_CLASSES: dict[str, type[BaseExecutor]] = {
+    "aurd": AsyncAURDExecutor, "fixed": AsyncExecutor, "adahorizon": AsyncExecutor, "ensemble": AsyncEnsembleExecutor,
+}
+
+
 def make_async_executor(cfg: ExecutorConfig, execution: AsyncConfig) -> BaseExecutor:
     check_execution(execution, cfg)
-    return (AsyncEnsembleExecutor if cfg.kind == "ensemble" else AsyncExecutor)(cfg, execution)
+    return _ASYNC_CLASSES[cfg.kind](cfg, execution)
 
 
 # -- the actors the episode runner calls, one control step per call ------------------------------------------

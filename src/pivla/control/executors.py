@@ -28,6 +28,7 @@ from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from enum import Enum
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
@@ -35,6 +36,8 @@ import tyro
 
 from pivla.control.contract import DEFAULT_ETA, ChunkPolicy
 from pivla.control.math import (
+    CUTS,
+    Event,
     adahorizon,
     combine_uncertainty,
     prediction_uncertainty,
@@ -158,7 +161,7 @@ class BaseExecutor:
 
     def reset(self) -> None:
         self.trace: list[dict] = []
-        self.plans: list[tuple[int, str]] = []
+        self.plans: list[tuple[int, Event]] = []
         self.t, self.last_action = 0, None
         self.queries = 0  # policy forward passes, the compute a chunking strategy saves or spends
         self._pred_min: float | None = None
@@ -224,6 +227,10 @@ class BaseExecutor:
 def _jsonable(v: Any) -> Any:
     if isinstance(v, (np.floating, np.integer)):
         return v.item()
+    if isinstance(v, Enum):
+        return v.value  # a trace holds plain strings (events, reasons), as episodes.jsonl does
+    if isinstance(v, list):
+        return [_jsonable(x) for x in v]
     return v
 
 
@@ -245,7 +252,7 @@ class FixedExecutor(BaseExecutor):
         ended = None
         if replanned:
             if self._plan is not None:
-                ended = "complete"
+                ended = Event.COMPLETE
                 self.plans.append((self._k, ended))
             self._plan, self._k = Plan.from_output(self._infer(policy, obs)), 0
         k, p = self._k, self._plan
@@ -281,9 +288,9 @@ class EnsembleExecutor(BaseExecutor):
             self._history.popleft()
         preds = np.stack([chunk[self.t - t0] for t0, chunk in self._history])
         action = policy.to_actions(temporal_ensemble(preds, self.cfg.m).astype(np.float32))
-        self.plans.append((1, "complete"))
+        self.plans.append((1, Event.COMPLETE))
         return self._emit(action, plan_step=0, replanned=True, u_act=plan.u_act[0], **signals, v=plan.values[0],
-                          ended="complete" if self.t > 0 else None, n_ensembled=len(preds))
+                          ended=Event.COMPLETE if self.t > 0 else None, n_ensembled=len(preds))
 
 
 class AdaHorizonExecutor(BaseExecutor):
@@ -301,7 +308,7 @@ class AdaHorizonExecutor(BaseExecutor):
         super().reset()
         self._plan: Plan | None = None
         self._k, self._h = 0, 0
-        self._event: str | None = None  # how the current plan ends, decided when it was made
+        self._event: Event | None = None  # how the current plan ends, decided when it was made
 
     def _thresholds(self, policy: ChunkPolicy) -> tuple[float, float]:
         c = policy.calibration
@@ -326,15 +333,53 @@ class AdaHorizonExecutor(BaseExecutor):
                           v=p.value(k), ended=ended, h_exec=self._h)
 
 
-class AURDExecutor(BaseExecutor):
-    """PI-VLA's Active Uncertainty-Resolving Decider (Algorithm 1, docs/method.md "AURD").
+@dataclass(frozen=True)
+class AURDSettings:
+    """What AURD decides with, fixed for an episode: the thresholds (Algorithm 1's tau_low, tau_high, V_thresh),
+    eta (Eq. 14), how U_pred is measured, and the nominal horizon H. ``AURDSettings.of``: the config's options
+    over the policy's calibration."""
 
-    Before executing plan step k (``check="before"``) it forms U = eta * U_act[k] + (1 - eta) * U_pred,
-    U_pred being the newest prediction error ||Enc(o_{t+k}) - z_hat_{t+k}|| (0 for k = 0), and
-    replans above tau_high, prunes in (tau_low, tau_high] when V[k] < V_thresh, and after a full nominal
-    horizon completes. A stop before the first action is a pause: hold pose one step, then replan; after
-    ``max_pauses`` pauses in a row the first action is executed anyway, so a static scene cannot stall the
-    robot forever. ``check="after"`` is the paper's literal order (execute, observe, then test).
+    tau_low: float
+    tau_high: float
+    v_thresh: float
+    eta: float
+    pred_baseline: Literal["none", "episode"]  # raw U_pred, or above the episode's floor (control.math.surprise)
+    horizon: int
+
+    @classmethod
+    def of(cls, cfg: AURDConfig, policy: ChunkPolicy) -> AURDSettings:
+        c = policy.calibration
+        if any(v is None for v in (cfg.tau_low, cfg.tau_high, cfg.v_thresh)) and c is None:
+            raise ValueError("AURD needs thresholds: calibrate the policy (`pivla calibrate --policy RUN --data VAL`) "
+                             "or give tau_low, tau_high and v_thresh")
+
+        def option(name: str, calibrated: Any) -> Any:
+            mine = getattr(cfg, name)
+            return mine if mine is not None else calibrated
+
+        return cls(tau_low=option("tau_low", getattr(c, "tau_low", None)),
+                   tau_high=option("tau_high", getattr(c, "tau_high", None)),
+                   v_thresh=option("v_thresh", getattr(c, "v_thresh", None)),
+                   eta=option("eta", c.eta if c is not None else DEFAULT_ETA),
+                   pred_baseline=option("pred_baseline", getattr(c, "pred_baseline", "none") or "none"),
+                   horizon=cfg.horizon or policy.spec.horizon)
+
+    def test(self, u: float, v: float) -> Event | None:
+        """Algorithm 1, lines 8-14: REPLAN above tau_high, PRUNE in (tau_low, tau_high] with V below V_thresh, else
+        None (the step is trusted)."""
+        return step_event(u, v, self.tau_low, self.tau_high, self.v_thresh)
+
+
+class AURDExecutor(BaseExecutor):
+    """PI-VLA's Active Uncertainty-Resolving Decider (Algorithm 1; the paper's reading in docs/method.md, "AURD").
+
+    ``check="before"`` (default): before executing plan step k it forms U = eta * U_act[k] + (1 - eta) * U_pred,
+    U_pred being the newest prediction error ||Enc(o_{t+k}) - z_hat_{t+k}|| (0 for k = 0), and replans above
+    tau_high, prunes in (tau_low, tau_high] when V[k] < V_thresh, and after a full nominal horizon completes. A
+    stop before the first action is a pause: hold pose one step, then replan; after ``max_pauses`` pauses in a
+    row the first action is executed anyway, so a static scene cannot stall the robot forever.
+    ``check="after"`` is the paper's literal order (execute, observe, then test). One method each:
+    ``_act_checking_before`` and ``_act_checking_after``.
 
     ``commit_after_cut`` (default): the plan made right after a cut (replan, prune or pause) runs its nominal
     horizon unchecked, and the plan after it is checked again. Without it a policy whose U stays above
@@ -352,115 +397,154 @@ class AURDExecutor(BaseExecutor):
         super().reset()
         self._plan: Plan | None = None
         self._k, self._pauses = 0, 0
-        self._settings: tuple | None = None  # thresholds, eta, U_pred baseline and horizon, fixed for an episode
-
-    def _pred_baseline(self, policy: ChunkPolicy) -> str:
-        return self.cfg.pred_baseline if self.cfg.pred_baseline is not None else super()._pred_baseline(policy)
-
-    def _thresholds(self, policy: ChunkPolicy) -> tuple[float, float, float, float]:
-        c, cfg = policy.calibration, self.cfg
-        if any(v is None for v in (cfg.tau_low, cfg.tau_high, cfg.v_thresh)) and c is None:
-            raise ValueError("AURD needs thresholds: calibrate the policy (`pivla calibrate --policy RUN --data VAL`) "
-                             "or give tau_low, tau_high and v_thresh")
-        tl = cfg.tau_low if cfg.tau_low is not None else c.tau_low
-        th = cfg.tau_high if cfg.tau_high is not None else c.tau_high
-        vt = cfg.v_thresh if cfg.v_thresh is not None else c.v_thresh
-        eta = cfg.eta if cfg.eta is not None else self._eta(policy)
-        return tl, th, vt, eta
-
-    def _committed(self) -> bool:
-        """The current plan was made right after a cut (the plan log's last entry) and runs unchecked."""
-        return self.cfg.commit_after_cut and bool(self.plans) and self.plans[-1][1] != "complete"
-
-    def _end_plan(self, h: int, event: str) -> None:
-        self.plans.append((h, event))
-        self._plan, self._k = None, 0
+        self.settings: AURDSettings | None = None  # resolved at the episode's first step
 
     def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
-        if self._settings is None:
-            self._settings = (*self._thresholds(policy), self._pred_baseline(policy),
-                              self.cfg.horizon or policy.spec.horizon)
-        tau_low, tau_high, v_thresh, eta, baseline, H = self._settings
-        check = self.cfg.check
-        ended = None
-        cut: dict[str, float] = {}  # U and V of the step a "replan" / "prune" did not trust
-        z_obs = None
-        observed = self._plan is not None and self._k > 0  # o is the outcome of this plan's step k - 1
-        # encode only what a decision reads: not after a plan's last step (it completes, and the new plan's
-        # first step has U_pred = 0), unless check="after" tests that step first; a committed plan's steps
-        # are read by no decision, only by the trace (monitoring)
-        committed = observed and self._committed()
-        if observed and (check == "after" or self._k < min(H, len(self._plan.actions))):
-            if not committed:
-                z_obs = policy.encode(obs)
-            elif self.monitor:
-                with self._monitoring():
-                    z_obs = policy.encode(obs)
-        if check == "after" and observed and not committed:
-            k = self._k - 1  # the step just executed, now observed
-            u_pred = self._u_pred(z_obs, self._plan.latents[k], baseline)
-            u = combine_uncertainty(self._plan.u_act[k], u_pred, eta)
-            event = step_event(u, self._plan.value(k), tau_low, tau_high, v_thresh)
-            if event is not None:
-                ended, cut = event, {"ended_u": u, "ended_v": self._plan.value(k)}
-                self._end_plan(self._k, event)
-        if self._plan is not None and self._k >= min(H, len(self._plan.actions)):
-            ended = "complete"
-            self._end_plan(self._k, "complete")
+        if self.settings is None:
+            self.settings = AURDSettings.of(self.cfg, policy)
+        if self.cfg.check == "before":
+            return self._act_checking_before(policy, obs)
+        return self._act_checking_after(policy, obs)
+
+    def _act_checking_before(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
+        """One control step, step k tested before it executes (docs/method.md):
+
+        1. observe o_t, the outcome of the plan's step k - 1;
+        2. after H steps the plan is complete (COMPLETE);
+        3. without a plan, query the policy (its step 0 has U_pred = 0);
+        4. test step k: trusted (or the plan is committed) -> execute it; untrusted at k > 0 -> the plan ends
+           before it (REPLAN or PRUNE, H_exec = k) and a new one is made from this observation (back to 3);
+           untrusted at k = 0 -> PAUSE: hold pose one step (after ``max_pauses`` pauses in a row execute it
+           anyway, FORCED)."""
+        s = self.settings
+        z = self._observe(policy, obs)
+        ended, cut = None, {}  # how the previous plan ended at this step; U and V of a step a cut did not trust
+        if self._plan is not None and self._k >= self._horizon():
+            ended = self._end_plan(Event.COMPLETE)
         replanned = False
         while True:
             if self._plan is None:
-                self._plan, self._k, replanned, z_obs = Plan.from_output(self._infer(policy, obs)), 0, True, None
-            k, p = self._k, self._plan
-            u_pred = 0.0 if k == 0 or z_obs is None else self._u_pred(z_obs, p.latents[k - 1], baseline)
-            u = combine_uncertainty(float(p.u_act[k]), u_pred, eta)
-            v = p.value(k)
+                self._new_plan(policy, obs)
+                replanned, z = True, None
+            p, k = self._plan, self._k
+            u_pred = 0.0 if k == 0 or z is None else self._u_pred(z, p.latents[k - 1], s.pred_baseline)
+            u, v = combine_uncertainty(float(p.u_act[k]), u_pred, s.eta), p.value(k)
             committed = self._committed()
-            checked = check == "before" and not committed
-            event = step_event(u, v, tau_low, tau_high, v_thresh) if checked else None
-            if event is not None and k > 0:
-                ended, cut = event, {"ended_u": u, "ended_v": v}
-                self._end_plan(k, event)
-                continue  # replan from the same observation
-            if event is not None and self._pauses < self.cfg.max_pauses:
-                self._pauses += 1
-                self._end_plan(0, "pause")
-                return self._emit(self.hold_action(policy.spec.action_space), plan_step=0, replanned=replanned,
-                                  u_act=p.u_act[0], u_pred=u_pred, u=u, v=v, event="pause", ended=ended,
-                                  committed=False, **cut)
-            self._pauses = 0
-            self._k += 1
-            return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], u_pred=u_pred,
-                              u=u, v=v, event="forced" if event else None, ended=ended, committed=committed,
-                              **cut)
+            event = None if committed else s.test(u, v)
+            if event is None or k == 0:
+                break
+            ended, cut = self._end_plan(event), {"ended_u": u, "ended_v": v}  # replan from this observation
+        if event is not None and self._pauses < self.cfg.max_pauses:
+            self._pauses += 1
+            self._end_plan(Event.PAUSE)
+            return self._emit(self.hold_action(policy.spec.action_space), plan_step=0, replanned=replanned,
+                              u_act=p.u_act[0], u_pred=u_pred, u=u, v=v, event=Event.PAUSE, ended=ended,
+                              committed=False, **cut)
+        self._pauses = 0
+        self._k += 1
+        return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], u_pred=u_pred, u=u,
+                          v=v, event=Event.FORCED if event else None, ended=ended, committed=committed, **cut)
+
+    def _act_checking_after(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
+        """One control step in the paper's literal order, never a pause:
+
+        1. observe o_t, the outcome of the plan's step k - 1, and (unless the plan is committed) test that step
+           with it: untrusted -> the plan ends after it (REPLAN or PRUNE, H_exec = k);
+        2. after H steps the plan is complete (COMPLETE);
+        3. without a plan, query the policy; execute step k."""
+        s = self.settings
+        z = self._observe(policy, obs)
+        ended, cut = None, {}
+        if self._plan is not None and self._k > 0 and not self._committed():
+            p, k = self._plan, self._k - 1
+            u_pred = self._u_pred(z, p.latents[k], s.pred_baseline)
+            u = combine_uncertainty(p.u_act[k], u_pred, s.eta)  # U_act's own dtype here, as the episodes on disk
+            event = s.test(u, p.value(k))
+            if event is not None:
+                ended, cut = self._end_plan(event), {"ended_u": u, "ended_v": p.value(k)}
+        if self._plan is not None and self._k >= self._horizon():
+            ended = self._end_plan(Event.COMPLETE)
+        replanned = False
+        if self._plan is None:
+            self._new_plan(policy, obs)
+            replanned, z = True, None
+        p, k = self._plan, self._k
+        # the trace's U_pred of step k; after a test above, the episode floor has moved by that measurement
+        u_pred = 0.0 if k == 0 or z is None else self._u_pred(z, p.latents[k - 1], s.pred_baseline)
+        u = combine_uncertainty(float(p.u_act[k]), u_pred, s.eta)
+        committed = self._committed()
+        self._pauses = 0
+        self._k += 1
+        return self._emit(p.actions[k], plan_step=k, replanned=replanned, u_act=p.u_act[k], u_pred=u_pred, u=u,
+                          v=p.value(k), event=None, ended=ended, committed=committed, **cut)
+
+    # -- the pieces of a step --------------------------------------------------------------------------------
+    def _horizon(self) -> int:
+        return min(self.settings.horizon, len(self._plan.actions))
+
+    def _observe(self, policy: ChunkPolicy, obs: dict) -> np.ndarray | None:
+        """Enc(o_t) where a test reads it: o_t is the outcome of the plan's step k - 1, read by the test of step k
+        (before) or of step k - 1 (after). Not after a plan's last step when testing before (the plan completes,
+        and a new plan's step 0 has U_pred = 0). A committed plan's steps are read by no test: encoded for the
+        trace only (``monitor``, outside the control time)."""
+        if self._plan is None or self._k == 0:
+            return None
+        if self.cfg.check == "before" and self._k >= self._horizon():
+            return None
+        if not self._committed():
+            return policy.encode(obs)
+        if not self.monitor:
+            return None
+        with self._monitoring():
+            return policy.encode(obs)
+
+    def _committed(self) -> bool:
+        """The current plan was made right after a cut (the plan log's last entry) and runs unchecked."""
+        return self.cfg.commit_after_cut and bool(self.plans) and self.plans[-1][1] != Event.COMPLETE
+
+    def _new_plan(self, policy: ChunkPolicy, obs: dict) -> None:
+        self._plan, self._k = Plan.from_output(self._infer(policy, obs)), 0
+
+    def _end_plan(self, event: Event) -> Event:
+        """The current plan ends after its ``_k`` executed steps; returns the event (the next row's ``ended``)."""
+        self.plans.append((self._k, event))
+        self._plan, self._k = None, 0
+        return event
 
 
-EXECUTORS: dict[str, tuple[type, type[BaseExecutor]]] = {
-    "aurd": (AURDConfig, AURDExecutor), "fixed": (FixedConfig, FixedExecutor),
-    "ensemble": (EnsembleConfig, EnsembleExecutor), "adahorizon": (AdaHorizonConfig, AdaHorizonExecutor),
+@dataclass(frozen=True)
+class ExecutorKind:
+    """One executor in the registry: its config (the command line's ``--executor NAME``) and its class."""
+
+    config: type
+    executor: type[BaseExecutor]
+
+
+EXECUTOR_REGISTRY: dict[str, ExecutorKind] = {
+    "aurd": ExecutorKind(AURDConfig, AURDExecutor), "fixed": ExecutorKind(FixedConfig, FixedExecutor),
+    "ensemble": ExecutorKind(EnsembleConfig, EnsembleExecutor),
+    "adahorizon": ExecutorKind(AdaHorizonConfig, AdaHorizonExecutor),
 }
+"""Every executor by name (``make_executor``, ``executor_config``)."""
 
 
-CUTS = ("replan", "prune", "pause")
-
-
-def first_cut(trace: list[dict]) -> str | None:
-    """How AURD first left its nominal schedule in an episode's trace: "replan", "prune" or "pause"; None if it
-    never did. Until that step AURD executes what a fixed horizon of the same H would, so in a paired episode
-    the first cut is where the two can part (the benchmark groups its discordant pairs by it)."""
+def first_cut(trace: list[dict]) -> Event | None:
+    """How AURD first left its nominal schedule in an episode's trace: REPLAN, PRUNE or PAUSE; None if it never
+    did. Until that step AURD executes what a fixed horizon of the same H would, so in a paired episode the
+    first cut is where the two can part (the benchmark groups its discordant pairs by it)."""
     for row in trace:
         if row.get("ended") in CUTS:  # a plan cut at this step (a pause here too comes after that cut)
-            return row["ended"]
-        if row.get("event") == "pause":
-            return "pause"
+            return Event(row["ended"])
+        if row.get("event") == Event.PAUSE:
+            return Event.PAUSE
     return None
 
 
 def executor_config(name: str, **options: Any) -> ExecutorConfig:
     """The config of an executor by name, with options replacing its defaults (unknown options are an error)."""
-    if name not in EXECUTORS:
-        raise ValueError(f"unknown executor {name!r}; choose from {sorted(EXECUTORS)}")
-    cls = EXECUTORS[name][0]
+    if name not in EXECUTOR_REGISTRY:
+        raise ValueError(f"unknown executor {name!r}; choose from {sorted(EXECUTOR_REGISTRY)}")
+    cls = EXECUTOR_REGISTRY[name].config
     fields = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(options) - fields)
     if unknown:
@@ -476,7 +560,7 @@ def make_executor(cfg: ExecutorConfig | str, **options: Any) -> BaseExecutor:
         cfg = dataclasses.replace(cfg, **options)
     if cfg.kind == "aurd" and cfg.pred_baseline not in (None, "none", "episode"):
         raise ValueError(f"pred_baseline must be 'none' or 'episode', got {cfg.pred_baseline!r}")
-    return EXECUTORS[cfg.kind][1](cfg)
+    return EXECUTOR_REGISTRY[cfg.kind].executor(cfg)
 
 
 def config_to_dict(cfg: ExecutorConfig) -> dict[str, Any]:

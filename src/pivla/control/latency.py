@@ -122,6 +122,10 @@ class SimulatedLink:
     def pace(self, step: int) -> None:
         """Simulated time needs no waiting."""
 
+    def expected_delay_steps(self) -> int:
+        """Control steps a query is expected in flight: the latency's mean at the control rate."""
+        return delay_steps(self.latency.mean_ms, self.hz)
+
     def send(self, obs: Mapping[str, Any], step: int) -> int:
         qid, self._next_id = self._next_id, self._next_id + 1
         due = step + delay_steps(self.latency.draw_ms(self.rng), self.hz)
@@ -184,6 +188,12 @@ class WallClockLink:
         qid, self._next_id = self._next_id, self._next_id + 1
         self._requests.put((qid, step, obs))
         return qid
+
+    def expected_delay_steps(self) -> int:
+        """Control steps a query is expected in flight: the mean of the round trips measured so far on this
+        link, in steps (0 before the first answer)."""
+        delays = self.stats.delays
+        return max(0, math.ceil(sum(delays) / len(delays) - 1e-9)) if delays else 0
 
     def _serve(self) -> None:
         while (job := self._requests.get()) is not None:

@@ -6,12 +6,34 @@ Indices: a plan is a chunk of K actions; ``u[k]`` and ``values[k]`` belong to st
 
 from __future__ import annotations
 
+from enum import StrEnum
+
 import numpy as np
 
 from pivla.control.contract import DEFAULT_ETA
 from pivla.model.tokenizer import dequantize as _dequantize
 
-EVENTS = ("complete", "replan", "prune", "pause")
+
+class Event(StrEnum):
+    """How a plan ends, and what AURD did at a step. The values are what traces and plan logs hold on disk
+    (``episodes.jsonl``), so a member equals, hashes and serialises as its string: ``Event.REPLAN == "replan"``.
+
+    A plan ends: ``COMPLETE`` (it ran its horizon), ``REPLAN`` (U above tau_high), ``PRUNE`` (U in the band
+    (tau_low, tau_high] with a low value), ``PAUSE`` (its first step was untrusted: AURD held pose one step),
+    or, asynchronously, ``SWITCH`` (a newer chunk took over before it ran its horizon). A trace row's
+    ``event`` is ``PAUSE`` on the step that held, or ``FORCED``: an untrusted first step executed anyway after
+    ``max_pauses`` pauses in a row."""
+
+    COMPLETE = "complete"
+    REPLAN = "replan"
+    PRUNE = "prune"
+    PAUSE = "pause"
+    SWITCH = "switch"
+    FORCED = "forced"
+
+
+EVENTS = (Event.COMPLETE, Event.REPLAN, Event.PRUNE, Event.PAUSE)  # the ends of a plan in the synchronous loop
+CUTS = (Event.REPLAN, Event.PRUNE, Event.PAUSE)  # the ends AURD's test decides: it left its nominal schedule
 
 
 def dequantize(probs, bin_centers):
@@ -68,18 +90,18 @@ def composite_uncertainty(continuous: np.ndarray, dequantized: np.ndarray, obser
     return float(out) if np.ndim(out) == 0 else out
 
 
-def step_event(u: float, value: float, tau_low: float, tau_high: float, v_thresh: float) -> str | None:
-    """AURD's test of one plan step (Algorithm 1, lines 8-14): "replan" above tau_high, "prune" in the
-    band (tau_low, tau_high] when the value is low, else None (the step is trusted)."""
+def step_event(u: float, value: float, tau_low: float, tau_high: float, v_thresh: float) -> Event | None:
+    """AURD's test of one plan step (Algorithm 1, lines 8-14): ``Event.REPLAN`` above tau_high,
+    ``Event.PRUNE`` in the band (tau_low, tau_high] when the value is low, else None (the step is trusted)."""
     if u > tau_high:
-        return "replan"
+        return Event.REPLAN
     if u > tau_low and value < v_thresh:
-        return "prune"
+        return Event.PRUNE
     return None
 
 
 def decide_horizon(u: np.ndarray, values: np.ndarray, tau_low: float, tau_high: float, v_thresh: float,
-                   check: str = "before") -> tuple[int, str]:
+                   check: str = "before") -> tuple[int, Event]:
     """AURD's executed horizon for a plan whose uncertainties ``u`` and values are known for each step.
 
     ``check="before"`` (default, docs/method.md "AURD"): step k is tested before it is executed; a triggered test
@@ -96,8 +118,8 @@ def decide_horizon(u: np.ndarray, values: np.ndarray, tau_low: float, tau_high: 
             continue
         if check == "after":
             return k + 1, event
-        return (k, event) if k > 0 else (0, "pause")
-    return n, "complete"
+        return (k, event) if k > 0 else (0, Event.PAUSE)
+    return n, Event.COMPLETE
 
 
 def ensemble_weights(n: int, m: float = 0.01) -> np.ndarray:
@@ -113,7 +135,7 @@ def temporal_ensemble(predictions: np.ndarray, m: float = 0.01) -> np.ndarray:
 
 
 def adahorizon(mad: np.ndarray, min_exec: int = 4, extend_below: float = 0.03,
-               replan_above: float = 0.06) -> tuple[int, str]:
+               replan_above: float = 0.06) -> tuple[int, Event]:
     """EverydayVLA's AdaHorizon on MAD_k = mean_d |A_c[k] - a_bar[k]|.
 
     Execute at least ``min_exec`` actions, but if any MAD among them exceeds ``replan_above`` replan at
@@ -122,8 +144,8 @@ def adahorizon(mad: np.ndarray, min_exec: int = 4, extend_below: float = 0.03,
     mad = np.asarray(mad)
     for k in range(min(min_exec, len(mad))):
         if mad[k] > replan_above:
-            return max(k, 1), "replan"
+            return max(k, 1), Event.REPLAN
     h = min(min_exec, len(mad))
     while h < len(mad) and mad[h] < extend_below:
         h += 1
-    return h, "complete"
+    return h, Event.COMPLETE

@@ -12,6 +12,7 @@ import numpy as np
 from pivla.control.asynchronous import MOTION, ExecutionConfig, LinkActor
 from pivla.control.executors import BaseExecutor
 from pivla.control.latency import Latency, control_hz, parse_latency
+from pivla.control.math import Event
 from pivla.data.episode import Episode
 from pivla.envs.rollout import run_episode as _run_actor_episode
 
@@ -43,7 +44,7 @@ class EpisodeResult:
     steps: int
     executor: str
     trace: list[dict]
-    plans: list[tuple[int, str]]
+    plans: list[tuple[int, Event]]
     step_times: list[float]
     seed: int | None = None
     stage_progress: float | None = None  # twin: fraction of the task's stages reached; LIBERO: of its goal met
@@ -60,12 +61,12 @@ class EpisodeResult:
 
     def summary(self) -> dict:
         ev = self.events
-        horizons = [h for h, e in self.plans if e != "pause"]
+        horizons = [h for h, e in self.plans if e != Event.PAUSE]
         return {
             "success": self.success, "steps": self.steps, "executor": self.executor, "seed": self.seed,
             "stage_progress": self.stage_progress,
             "plans": len(self.plans), "queries": self.queries,
-            "replans": ev["replan"], "prunes": ev["prune"], "pauses": ev["pause"],
+            "replans": ev[Event.REPLAN], "prunes": ev[Event.PRUNE], "pauses": ev[Event.PAUSE],
             "mean_executed_horizon": float(np.mean(horizons)) if horizons else 0.0,
             # mean, not median: chunking executors query the policy on a few steps only
             "control_ms_mean": float(np.mean(self.step_times) * 1e3) if self.step_times else 0.0,

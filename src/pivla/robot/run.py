@@ -15,14 +15,23 @@ import logging
 from typing import Any
 
 from pivla.control import make_executor, run_episode
+from pivla.control.asynchronous import ExecutionConfig
 from pivla.control.executors import ExecutorConfig
 
 log = logging.getLogger(__name__)
 
 
 def run_policy(env: Any, policy: Any, executor: ExecutorConfig, episodes: int = 1, seed: int = 0,
-               **episode_options: Any) -> list[dict]:
-    """The summaries of ``episodes`` closed-loop episodes of ``policy`` on ``env`` (see the module doc)."""
+               execution: ExecutionConfig | None = None, **episode_options: Any) -> list[dict]:
+    """The summaries of ``episodes`` closed-loop episodes of ``policy`` on ``env`` (see the module doc).
+
+    ``execution``: None or ``SyncConfig`` query and wait (the executor calls the policy directly);
+    ``AsyncConfig`` runs the asynchronous loop of ``pivla.control.asynchronous`` on the wall clock (``latency``
+    "real" unless given): each query runs on a worker thread while the arm executes the current chunk, paced at
+    the env's control rate. A link that is lost (``RemotePolicy`` raises after its reconnection attempts) makes
+    the arm hold once the chunk in execution has run its horizon, and it moves again when the link is back."""
+    if execution is not None and execution.kind == "async":
+        episode_options = {"latency": "real", **episode_options, "execution": execution}
     results = []
     try:
         for ep in range(episodes):
