@@ -156,6 +156,17 @@ def test_a_policy_trains_on_it_and_runs_in_the_twin(so101_data, tmp_path):
     assert np.all(np.isfinite(result.actions))
     assert np.all(env.command >= lo) and np.all(env.command <= hi)
 
+    # with latency the arm holds where it is until the first chunk arrives: its present joint positions
+    from pivla.control.asynchronous import SyncConfig
+
+    obs, _ = env.reset(seed=3)
+    start = np.asarray(obs["state"], np.float32)
+    result = run_policy(env, policy, make_executor("fixed"), seed=3, max_steps=6, execution=SyncConfig(),
+                        latency="300")
+    idle = [row for row in result.trace if row.get("idle")]
+    assert result.steps == 6 and len(idle) == 3
+    np.testing.assert_allclose(result.actions[0], start, atol=1e-4)
+
 
 def test_the_arm_model_ships_with_its_license_and_notice():
     """The MJCF, meshes, LICENSE and NOTICE of assets/so101 are package data (pyproject's patterns)."""

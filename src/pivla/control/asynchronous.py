@@ -619,7 +619,7 @@ class LinkActor:
         if self._held is not None:
             action, row, due = self._held
             if t < due:
-                return self._idle(t)
+                return self._idle(t, obs)
             self._held = None
             self.trace.append({**row, "t": t})
             return action
@@ -630,7 +630,7 @@ class LinkActor:
         answer = self.linked.answer
         if answer is not None and answer.step > t:
             self._held, self._before = (action, row, answer.step), before
-            return self._idle(t)
+            return self._idle(t, obs)
         self.trace.append(row)
         return action
 
@@ -640,10 +640,13 @@ class LinkActor:
         self.step_times.append(time.perf_counter() - start - (self.executor.monitor_s - monitoring))
         return action
 
-    def _idle(self, t: int) -> np.ndarray:
-        """Hold pose while the chunk is in flight, as after the action before the query (``ActionSpace.hold``)."""
+    def _idle(self, t: int, obs: dict) -> np.ndarray:
+        """Hold pose while the chunk is in flight, as after the action before the query (``ActionSpace.hold``);
+        before an episode's first action an arm on absolute targets holds where it is (``present_pose``)."""
         self.trace.append({"t": t, "idle": True})
-        return np.asarray(self.policy.spec.action_space.hold(self._before), np.float32)
+        spec = self.policy.spec
+        last = self._before if self._before is not None else spec.present_pose(obs)
+        return np.asarray(spec.action_space.hold(last), np.float32)
 
     def rows(self) -> list[dict]:
         return list(self.executor.trace if self.execution.kind == "async" else self.trace)

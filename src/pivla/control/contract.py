@@ -62,6 +62,17 @@ class PolicySpec:
     def action_dim(self) -> int:
         return self.action_space.dim
 
+    def present_pose(self, obs: Mapping[str, Any]) -> np.ndarray | None:
+        """Where an arm on absolute targets is now, read from an observation: the first proprio key of the
+        action's dimension (LeRobot's ``observation.state`` beside ``action``, both ``<joint>.pos``). None for a
+        delta action space, which holds by commanding zero motion."""
+        if not self.action_space.kind.absolute:
+            return None
+        for key, n in self.proprio:
+            if n == self.action_dim and key in obs:
+                return np.asarray(obs[key], np.float32).reshape(-1)
+        return None
+
     def to_dict(self) -> dict[str, Any]:
         return {"cameras": list(self.cameras), "image_size": self.image_size,
                 "proprio": [[k, n] for k, n in self.proprio], "chunk": self.chunk, "horizon": self.horizon,
