@@ -6,8 +6,10 @@ import json
 import pytest
 
 from pivla.envs import seeds
-from pivla.evaluation import benchmark
-from pivla.evaluation.benchmark import BenchmarkConfig, Results
+from pivla.experiments.layout import TwinLayout
+from pivla.experiments.results import ResultsStore
+from pivla.experiments.studies import twin as benchmark
+from pivla.experiments.studies.twin import BenchmarkConfig
 from pivla.io import atomic_write_json
 
 
@@ -28,7 +30,7 @@ def test_comparisons_pair_episodes_within_each_seed_and_pool_the_seeds(tmp_path)
     _write_eval(tmp_path, 0, "main", "in_distribution", "fixed", [1, 0, 0, 1])
     _write_eval(tmp_path, 1, "main", "in_distribution", "aurd", [1, 1, 1])
     _write_eval(tmp_path, 1, "main", "in_distribution", "fixed", [0, 0, 1])
-    res = Results(tmp_path)
+    res = ResultsStore(TwinLayout(tmp_path))
     c = res.compare(("main", "in_distribution", "aurd"), ("main", "in_distribution", "fixed"))
     assert (c["n"], c["only_a"], c["only_b"]) == (7, 3, 1)
     assert c["diff"] == pytest.approx(2 / 7) and c["p_mcnemar"] == pytest.approx(0.625)
@@ -54,10 +56,10 @@ def test_departures_group_aurds_paired_episodes_by_its_first_cut(tmp_path):
     _write_eval(tmp_path, 0, "main", "unseen_env", "fixed", [1, 0, 1])
     _write_eval(tmp_path, 1, "main", "unseen_env", "aurd", [0], traces[1])
     _write_eval(tmp_path, 1, "main", "unseen_env", "fixed", [1])
-    dep = Results(tmp_path).departures("main", "unseen_env")
+    dep = ResultsStore(TwinLayout(tmp_path)).departures("main", "unseen_env")
     assert {g: tuple(v.values()) for g, v in dep.items()} == {
         "none": (1, 0, 0), "replan": (2, 1, 1), "prune": (0, 0, 0), "pause": (1, 0, 1)}
-    assert Results(tmp_path).departures("main", "in_distribution") is None  # not run
+    assert ResultsStore(TwinLayout(tmp_path)).departures("main", "in_distribution") is None  # not run
     atomic_write_json(tmp_path / "benchmark_config.json", dataclasses.asdict(BenchmarkConfig(out=str(tmp_path))))
     benchmark.write_benchmark_report(tmp_path)
     rows = json.loads((tmp_path / "benchmark.json").read_text())["tables"]["departures"]

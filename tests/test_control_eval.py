@@ -134,7 +134,7 @@ def test_eval_resumes_from_episode_log(tiny_policy, tmp_path, monkeypatch):
 
 
 def test_every_executor_runs_and_report_renders(tiny_policy, tmp_path):
-    from pivla.evaluation.report import write_report
+    from pivla.experiments.report import write_report
 
     for ex in ("fixed", "ensemble", "adahorizon"):
         assert _eval(tiny_policy, tmp_path / "cond" / ex, executor=ex)["executor"] == ex
@@ -148,7 +148,7 @@ def test_every_executor_runs_and_report_renders(tiny_policy, tmp_path):
 def test_report_takes_distraction_level_0_from_in_distribution(tiny_policy, tmp_path, monkeypatch):
     """The demo does not replay its in-distribution episodes as level 0 of the Fig. 8 sweep: the report
     borrows them, and says so."""
-    from pivla.evaluation import report as rep
+    from pivla.experiments import report as rep
 
     _eval(tiny_policy, tmp_path / "in_distribution" / "aurd")
     _eval(tiny_policy, tmp_path / "distraction_level_2" / "aurd", perturb="level=2")
@@ -242,7 +242,7 @@ def test_demo_calibrates_on_successful_rollouts_else_on_demos(tiny_policy, tmp_p
     validation demonstrations (and the source recorded says which)."""
     import shutil
 
-    from pivla.evaluation.protocol import calibrate_on_rollouts
+    from pivla.experiments.stages import calibrate_on_rollouts
 
     demos = tiny_policy.parent / "data"
     run = shutil.copytree(tiny_policy, tmp_path / "run")  # the fixture stays as is
@@ -267,7 +267,7 @@ def test_calibration_with_episode_baseline_is_recorded_and_not_above_raw(tiny_po
 
 
 def test_report_leaves_out_validation_rollouts(tmp_path):
-    from pivla.evaluation.report import find_evaluations
+    from pivla.experiments.report import find_evaluations
 
     for cond, split in (("in_distribution", "test"), ("val_rollouts_eval", "validation")):
         (tmp_path / cond / "fixed").mkdir(parents=True)
@@ -278,7 +278,7 @@ def test_report_leaves_out_validation_rollouts(tmp_path):
 def test_ablation_trains_calibrates_and_tabulates_variants(tiny_policy, tmp_path):
     """`pivla ablate` in miniature: every trained variant goes through the demo's recipe (its own validation
     rollouts, then calibration), the table has one row per variant, and a second run reuses everything."""
-    from pivla.evaluation.ablate import AblationConfig, run_ablation
+    from pivla.experiments.studies.ablate import AblationConfig, run_ablation
     from tests.conftest import tiny_train_config
 
     data = tiny_policy.parent / "data"

@@ -249,7 +249,7 @@ def test_area_downsample_equals_pooling_the_float_tensor():
 def test_demo_policy_encodes_its_agent_view_downsampled(tmp_path):
     """The recipe (full demo and quick) trains with the target encoder reading the agent view downsampled 4x
     (its cheap U_pred) at 80 px; a resolution the downsampling does not divide is refused."""
-    from pivla.evaluation.demo import DemoConfig, quick, train_config
+    from pivla.experiments.studies.demo import DemoConfig, quick, train_config
     from pivla.training.config import TrainConfig, with_twin_inputs
 
     assert TrainConfig().model.image_size == 80 and TrainConfig().model.target_encoder.downsample == 4

@@ -6,7 +6,6 @@ import time
 import numpy as np
 import pytest
 
-from pivla.evaluation.libero import expert_table
 from pivla.evaluation.stats import (
     compare,
     mcnemar_exact,
@@ -16,7 +15,8 @@ from pivla.evaluation.stats import (
     paired_successes,
     wilson_interval,
 )
-from pivla.evaluation.timing import StageTimes
+from pivla.experiments.stages import StageTimes
+from pivla.experiments.studies.libero import expert_table
 from pivla.io import read_json
 
 Z2 = 1.959963984540054**2  # 3.841459

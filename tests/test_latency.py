@@ -374,8 +374,8 @@ def test_latency_depends_on_the_seed_not_on_the_machine(twin_policy, twin):
 
 
 def test_eval_writes_the_timing_metrics_and_report_tabulates_them(twin_policy, tmp_path):
-    from pivla.evaluation.report import write_report
     from pivla.evaluation.runner import EvalConfig, evaluate
+    from pivla.experiments.report import write_report
 
     run = str(twin_policy[0])
     out = tmp_path / "lat200-async" / "fixed"

@@ -75,8 +75,8 @@ def test_libero_run_end_to_end_on_one_task(tmp_path):
     import json
 
     from pivla.data.read import read_dataset
-    from pivla.evaluation.libero import LiberoRunConfig, run_libero
     from pivla.evaluation.runner import load_rows
+    from pivla.experiments.studies.libero import LiberoRunConfig, run_libero
     from pivla.training.config import libero_preset
 
     train = libero_preset()
@@ -291,7 +291,7 @@ def test_a_run_refuses_demonstrations_drawn_with_other_meshes(tmp_path):
     evaluate on simplified ones: refused, naming the file and both settings."""
     from pivla.data.hdf5 import write_episodes
     from pivla.data.synthetic import synthetic_episode
-    from pivla.evaluation.libero import check_rendering
+    from pivla.experiments.studies.libero import check_rendering
 
     episode = synthetic_episode(np.random.default_rng(0), "left", T=3, size=8)
     write_episodes(tmp_path / "a_demo.hdf5", [episode], {"env": "libero", "mesh_faces": 4000})
@@ -304,8 +304,8 @@ def test_a_run_refuses_demonstrations_drawn_with_other_meshes(tmp_path):
 def test_the_report_counts_failures_that_met_part_of_their_goal(tmp_path):
     """libero.md says which failed episodes ended with some of the goal's predicates true (one of two objects
     in the basket), per task; a failure that met none of its goal is not counted."""
-    from pivla.evaluation.libero import write_libero_report
     from pivla.evaluation.runner import EvalConfig, aggregate
+    from pivla.experiments.studies.libero import write_libero_report
     from pivla.io import atomic_write_json
 
     def row(task: str, episode: int, success: bool, progress: float) -> dict:

@@ -103,7 +103,7 @@ def test_a_smaller_collection_is_the_first_episodes_of_a_larger_one(tmp_path):
 def test_an_interrupted_collection_keeps_every_finished_task(tmp_path, monkeypatch):
     """Each task's file is written once it is complete; the benchmark's rerun collects only the missing tasks."""
     from pivla.envs import collect
-    from pivla.evaluation.benchmark import Benchmark
+    from pivla.experiments.stages import Collect
 
     real, calls = collect.iter_jobs, []
 
@@ -120,7 +120,7 @@ def test_an_interrupted_collection_keeps_every_finished_task(tmp_path, monkeypat
         collect.collect_demos(cfg)
     assert sorted(p.name for p in tmp_path.glob("*.hdf5")) == ["open_drawer_demo.hdf5"]
     written = (tmp_path / "open_drawer_demo.hdf5").stat().st_mtime_ns
-    Benchmark._collect(cfg)
+    Collect(cfg)()
     assert calls[1:] == [1]  # the second run collected the one missing task
     assert sorted(p.name for p in tmp_path.glob("*.hdf5")) == ["close_drawer_demo.hdf5", "open_drawer_demo.hdf5"]
     assert (tmp_path / "open_drawer_demo.hdf5").stat().st_mtime_ns == written

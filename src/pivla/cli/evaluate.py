@@ -87,12 +87,10 @@ class ReportConfig:
 
 
 def report(cfg: ReportConfig) -> int:
-    from pivla.evaluation.benchmark import write_benchmark_report
-    from pivla.evaluation.report import write_report
+    from pivla.experiments.studies import write_report
 
     try:  # a benchmark directory gets the benchmark's tables, the same ones pivla benchmark writes
-        is_benchmark = (Path(cfg.dir) / "benchmark_config.json").exists()
-        path = write_benchmark_report(cfg.dir) if is_benchmark else write_report(cfg.dir)
+        path = write_report(cfg.dir)
     except ValueError as e:  # an evaluation layout the report cannot read; said in the message
         raise SystemExit(f"pivla report: {e}") from e
     print(f"report written to {path}")

@@ -10,10 +10,10 @@ from typing import Annotated
 import tyro
 
 from pivla.envs.libero.expert import ExpertEvalConfig, expert_success
-from pivla.evaluation import benchmark
-from pivla.evaluation.ablate import AblationConfig, run_ablation
-from pivla.evaluation.demo import DemoConfig, quick, run_demo
-from pivla.evaluation.libero import LiberoRunConfig, expert_table, run_libero
+from pivla.experiments.studies import twin as benchmark
+from pivla.experiments.studies.ablate import AblationConfig, run_ablation
+from pivla.experiments.studies.demo import DemoConfig, quick, run_demo
+from pivla.experiments.studies.libero import LiberoRunConfig, expert_table, run_libero
 
 
 @dataclass

@@ -20,28 +20,27 @@ from typing import Annotated, Literal
 
 import tyro
 
-from pivla.control.asynchronous import AsyncConfig, ExecutionConfig, SyncConfig
+from pivla.control.asynchronous import AsyncConfig, SyncConfig
 from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
 from pivla.envs.backend import BackendConfig
-from pivla.envs.collect import CollectConfig, collect_demos
-from pivla.evaluation.protocol import calibrate_on_rollouts, recipe, validation_rollouts
-from pivla.evaluation.report import write_report
-from pivla.evaluation.runner import EvalConfig, evaluate
+from pivla.envs.collect import CollectConfig
+from pivla.experiments import conditions
+from pivla.experiments.layout import DemoLayout
+from pivla.experiments.plan import Evaluation, Plan, eval_config
+from pivla.experiments.recipes import recipe_config
+from pivla.experiments.report import write_report
+from pivla.experiments.stages import Calibrate, Collect, Evaluate, Train, perform, validation_rollouts
 from pivla.training.config import TrainConfig, check_target_divides
-from pivla.training.trainer import train
 
 log = logging.getLogger("pivla.demo")
 
 EXECUTORS = ("aurd", "fixed", "ensemble", "adahorizon")
-# condition -> (its code in the seed families, perturbation spec)
-CONDITIONS = {"in_distribution": ("in_distribution", None),
-              "static_distractors": ("static_distractors", "static_distractors"),
-              "unseen_env": ("unseen_env", "unseen_env"),
-              "dynamic_distractors": ("dynamic_distractors", "dynamic_distractors"),
-              "camera_jitter": ("camera_jitter", "camera_jitter"),
-              # the object jumps 4 cm while the second chunk executes: what replanning exists for
-              "displace_object_4": ("displace_object", "displace_object=4")}
+# the conditions --conditions may name (pivla.experiments.conditions); displace_object_4: the object jumps 4 cm
+# while the second chunk executes, what replanning exists for
+CONDITIONS = ("in_distribution", "static_distractors", "unseen_env", "dynamic_distractors", "camera_jitter",
+              "displace_object_4")
+POLICY = "policy"  # the demo's one policy
 
 
 @dataclass
@@ -91,7 +90,8 @@ class DemoConfig:
     workers: int = 2
     """Worker processes for collection and evaluation."""
     dispatch: Annotated[BackendConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=BackendConfig)
-    """Where the episodes run: --backend local | ray, --ray-address HOST:PORT (docs/cluster.md)."""
+    """Where the episodes and the training run: --backend local | ray (the training a Ray task, a GPU where the
+    cluster has them), --ray-address HOST:PORT (docs/cluster.md)."""
     calibration: CalibrationConfig = dataclasses.field(default_factory=CalibrationConfig)
     """AURD's calibration on the validation rollouts."""
 
@@ -105,71 +105,75 @@ def quick(base: DemoConfig | None = None) -> DemoConfig:
 def train_config(cfg: DemoConfig, data: Path, run: Path) -> TrainConfig:
     """The recipe at the demo's sizes; an image size the target's downsampling does not divide is refused
     before anything is collected."""
-    tc = recipe(str(data), str(run), cfg.seed, steps=cfg.steps, batch_size=cfg.batch_size, image_size=cfg.image_size)
+    tc = recipe_config(str(data), str(run), cfg.seed, steps=cfg.steps, batch_size=cfg.batch_size,
+                       image_size=cfg.image_size)
     check_target_divides(tc.model)
     return tc
 
 
-def _stage(name: str, done: bool) -> bool:
-    log.info("[%s] %s", name, "already done, skipping" if done else "...")
-    return not done
+def plans(cfg: DemoConfig) -> list[Plan]:
+    """The test evaluations, in their run order: every executor on every condition (with videos), the
+    distraction sweep, then the latency cell synchronously and asynchronously."""
+    unknown = sorted(set(cfg.conditions) - set(CONDITIONS))
+    if unknown:
+        raise ValueError(f"unknown conditions {unknown}; known: {', '.join(CONDITIONS)}")
+
+    def ev(cell: conditions.Cell, executor: str) -> Evaluation:
+        return Evaluation(POLICY, cell, executor, executor_config(executor))
+
+    out = [Plan.of([ev(conditions.twin(c), e) for c in cfg.conditions for e in EXECUTORS],
+                   episodes=cfg.test_episodes, videos=2),
+           Plan.of([ev(conditions.distraction_level(lv), e) for lv in cfg.levels for e in cfg.level_executors],
+                   episodes=cfg.level_episodes)]
+    if cfg.latency_ms is not None:
+        for mode in (SyncConfig(), AsyncConfig(threshold=3)):
+            cell = dataclasses.replace(conditions.IN_DISTRIBUTION, name=f"latency_{cfg.latency_ms}ms_{mode.kind}")
+            out.append(Plan.of([ev(cell, "fixed")], episodes=cfg.test_episodes, execution=mode,
+                               latency_ms=cfg.latency_ms))
+    return out
 
 
 def run_demo(cfg: DemoConfig) -> Path:
     """Run (or resume) every stage; returns the path of report.md."""
-    out = Path(cfg.out)
-    train_dir, val_dir, run_dir = out / "data" / "train", out / "data" / "val", out / "policy"
-    tc = train_config(cfg, train_dir, run_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = DemoLayout(Path(cfg.out))
+    tc = train_config(cfg, out.train_data, out.policy)
+    out.root.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     t_all = time.time()
 
-    def timed(name: str, fn: Callable[[], object]) -> None:
+    def timed(name: str, fn: Callable[[], object]) -> object:
         t = time.time()
-        fn()
+        result = fn()
         timings[name] = round(time.time() - t, 1)
+        return result
 
-    unknown = sorted(set(cfg.conditions) - set(CONDITIONS))
-    if unknown:
-        raise ValueError(f"unknown conditions {unknown}; known: {', '.join(CONDITIONS)}")
-    demos = CollectConfig(out=str(train_dir), suite="pick_place", env="tabletop", episodes=cfg.train_episodes,
+    test_plans = plans(cfg)
+    demos = CollectConfig(out=str(out.train_data), suite="pick_place", env="tabletop", episodes=cfg.train_episodes,
                           seed_family="train", perturb=cfg.train_perturb, workers=cfg.workers, realism=cfg.realism,
                           image_size=cfg.image_size, noise=cfg.noise, miss=cfg.miss, dispatch=cfg.dispatch)
-    if _stage("collect train demos", (train_dir / "rock_right_demo.hdf5").exists()):
-        timed("collect_train", lambda: collect_demos(demos))
-    if _stage("collect validation demos", (val_dir / "rock_right_demo.hdf5").exists()):
-        val = dataclasses.replace(demos, out=str(val_dir), episodes=cfg.val_episodes, seed_family="validation",
-                                  perturb=None, noise=0.0, miss=0.0)
-        timed("collect_val", lambda: collect_demos(val))
-    status = run_dir / "status.json"
-    if _stage("train", status.exists() and json.loads(status.read_text()).get("done", False)):
-        timed("train", lambda: train(tc, resume=(run_dir / "checkpoints").exists()))
-    rollouts_dir = out / "data" / "val_rollouts"
-    if _stage("validation rollouts", (rollouts_dir / "rock_right_rollouts.hdf5").exists()):
-        timed("validation_rollouts", lambda: _log_eval(validation_rollouts(
-            run_dir, rollouts_dir, out / "data" / "val_rollouts_eval", cfg.val_episodes, cfg.seed, cfg.realism,
-            cfg.workers, family=True, dispatch=cfg.dispatch), "validation", "fixed"))
-    if _stage("calibrate", (run_dir / "calibration.json").exists()):
-        timed("calibrate", lambda: calibrate_on_rollouts(run_dir, rollouts_dir, val_dir, cfg.calibration))
-    sync: ExecutionConfig = SyncConfig()
-    cells = [(c, e, *CONDITIONS[c], cfg.test_episodes, 2, sync, "0") for c in cfg.conditions for e in EXECUTORS]
-    cells += [(f"distraction_level_{lv}", e, "distraction_level", f"level={lv}" if lv else None, cfg.level_episodes, 0,
-               sync, "0") for lv in cfg.levels for e in cfg.level_executors]
-    if cfg.latency_ms is not None:
-        cells += [(f"latency_{cfg.latency_ms}ms_{mode.kind}", "fixed", "in_distribution", None, cfg.test_episodes, 0,
-                   mode, cfg.latency_ms) for mode in (sync, AsyncConfig(threshold=3))]
-    for condition, executor, code, perturb, episodes, videos, execution, latency in cells:
-        target = out / "eval" / condition / executor
-        if _stage(f"eval {condition} {executor}", (target / "results.json").exists()):
-            ec = EvalConfig(policy=str(run_dir), out=str(target), executor=executor_config(executor),
-                            episodes=episodes, seed_family="test", condition=code, perturb=perturb,
-                            realism=cfg.realism, workers=cfg.workers, dispatch=cfg.dispatch, videos=videos,
-                            execution=execution, latency_ms=latency)
-            timed(f"eval_{condition}_{executor}",
-                  lambda ec=ec, c=condition, e=executor: _log_eval(evaluate(ec, progress=False), c, e))
-    report = write_report(out)
+    perform(Collect(demos, strict=False), "collect_train", "collect train demos", timed)
+    val = dataclasses.replace(demos, out=str(out.val_data), episodes=cfg.val_episodes, seed_family="validation",
+                              perturb=None, noise=0.0, miss=0.0)
+    perform(Collect(val, strict=False), "collect_val", "collect validation demos", timed)
+    perform(Train(tc, cfg.dispatch), "train", timed=timed)
+    rollouts = validation_rollouts(out.policy, out.val_rollouts, out.val_rollouts_eval, conditions.IN_DISTRIBUTION,
+                                   episodes=cfg.val_episodes, seed=cfg.seed, realism=cfg.realism, workers=cfg.workers,
+                                   family=True, dispatch=cfg.dispatch)
+    res = perform(rollouts, "validation_rollouts", "validation rollouts", timed)
+    if res is not None:
+        _log_eval(res, "validation", "fixed")
+    perform(Calibrate(out.policy, out.val_rollouts, out.val_data, cfg.calibration), "calibrate", timed=timed)
+    for plan in test_plans:
+        for ev in plan:
+            condition, executor = ev.cell.name, ev.label
+            stage = Evaluate(eval_config(ev, plan, policy=out.policy, out=out.evaluation(condition, executor),
+                                         realism=cfg.realism, family=True, workers=cfg.workers, dispatch=cfg.dispatch))
+            res = perform(stage, f"eval_{condition}_{executor}", f"eval {condition} {executor}", timed)
+            if res is not None:
+                _log_eval(res, condition, executor)
+    report = write_report(out.root)
     timings["total_this_invocation"] = round(time.time() - t_all, 1)
-    (out / "timings.json").write_text(json.dumps(timings, indent=2) + "\n")
+    out.timings.write_text(json.dumps(timings, indent=2) + "\n")
     log.info("timings (s): %s", timings)
     return report
 
