@@ -21,10 +21,7 @@ LAYERS = [
     ("pivla.robot",),
     ("pivla.serving",),
     ("pivla.evaluation",),
-    # the studies and what they share; the four evaluation modules are the names the README cites for them, kept
-    # as aliases of the studies (they hold no code)
-    ("pivla.experiments", "pivla.evaluation.benchmark", "pivla.evaluation.ablate", "pivla.evaluation.libero",
-     "pivla.evaluation.report"),
+    ("pivla.experiments",),
     ("pivla.bench",),
     ("pivla.cli", "pivla.__main__"),
 ]
