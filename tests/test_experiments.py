@@ -10,7 +10,7 @@ from pivla.control.executors import executor_config
 from pivla.envs.backend import BackendConfig
 from pivla.evaluation.runner import EvalConfig
 from pivla.experiments import conditions
-from pivla.experiments.plan import Evaluation, Plan, eval_config
+from pivla.experiments.plan import Evaluation, EvaluationPlan, eval_config
 from pivla.experiments.recipes import Kind, Recipe, execution_variant
 from pivla.experiments.render import Lines, Table, markdown
 from pivla.experiments.stages import Evaluate, Train, train_all, training_resources
@@ -62,7 +62,7 @@ def test_a_plan_holds_each_evaluation_once_and_makes_its_config():
     cell = conditions.twin("unseen_env")
     a = Evaluation("main", cell, "aurd", executor_config("aurd"))
     b = Evaluation("main", cell, "fixed", executor_config("fixed"))
-    plan = Plan.of([a, b, a], split="validation", episodes=3)
+    plan = EvaluationPlan.of([a, b, a], split="validation", episodes=3)
     assert list(plan) == [a, b] and len(plan) == 2
     ec = eval_config(b, plan, policy="p", out="o", realism="servo", family=True, workers=2)
     assert (ec.seed_family, ec.split, ec.condition, ec.perturb, ec.realism, ec.episodes, ec.workers) == (

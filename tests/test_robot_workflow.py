@@ -273,8 +273,6 @@ def test_pivla_arm_records_replays_and_teleoperates_on_the_board(tmp_path):
             robot.close()
 
 
-@pytest.mark.xfail(reason="pivla.envs.rollout still records 7-D actions (reshape(-1, 7)); the SO-101 twin's work "
-                          "lifts it", raises=ValueError, strict=False)
 def test_so101_runs_a_policy_in_joint_positions():
     from pivla.control.contract import PolicySpec
     from pivla.control.executors import executor_config

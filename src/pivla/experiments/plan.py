@@ -32,7 +32,7 @@ class Evaluation(NamedTuple):
 
 
 @dataclass(frozen=True)
-class Plan:
+class EvaluationPlan:
     """Evaluations that share their settings: the split their episodes come from, episodes per task (None:
     the study's count for the split), videos, and when queries go out and how late answers come."""
 
@@ -44,11 +44,11 @@ class Plan:
     latency_ms: str = "0"
 
     @staticmethod
-    def of(evaluations: Iterable[Evaluation], **settings: Any) -> Plan:
+    def of(evaluations: Iterable[Evaluation], **settings: Any) -> EvaluationPlan:
         """A plan of these evaluations, each key once where several tables share an evaluation (in the place
         of its first mention)."""
         unique = {ev.key: ev for ev in evaluations}
-        return Plan(tuple(unique.values()), **settings)
+        return EvaluationPlan(tuple(unique.values()), **settings)
 
     def __iter__(self) -> Iterator[Evaluation]:
         return iter(self.evaluations)
@@ -61,7 +61,7 @@ class Plan:
         return [ev for ev in self.evaluations if ev.policy in wanted]
 
 
-def eval_config(ev: Evaluation, plan: Plan, *, policy: Path, out: Path, realism: str, family: bool,
+def eval_config(ev: Evaluation, plan: EvaluationPlan, *, policy: Path, out: Path, realism: str, family: bool,
                 episodes: int | None = None, **settings: Any) -> EvalConfig:
     """The evaluation's ``EvalConfig``: its cell's fields, the plan's settings, and the study's (``settings``).
     With ``family`` the episodes are seeded from the split's seed family and the cell's code, as every twin

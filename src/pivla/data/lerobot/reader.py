@@ -283,7 +283,7 @@ def _decode_image(value: dict | None, feature: str, shape: tuple) -> np.ndarray:
 
 
 @dataclass
-class _Plan:
+class _FeatureMap:
     """Which features feed which pivla observation keys."""
 
     videos: dict[str, str] = field(default_factory=dict)  # key -> video feature
@@ -291,8 +291,8 @@ class _Plan:
     vectors: dict[str, tuple[str, int, int]] = field(default_factory=dict)  # key -> (feature, start, stop)
 
 
-def _plan(root: Path, features: dict[str, dict], obs_keys: tuple[str, ...] | None) -> _Plan:
-    plan = _Plan()
+def _plan(root: Path, features: dict[str, dict], obs_keys: tuple[str, ...] | None) -> _FeatureMap:
+    plan = _FeatureMap()
     for name, ft in features.items():
         shape = [int(s) for s in ft["shape"]]
         if ft["dtype"] == "video":
@@ -311,7 +311,7 @@ def _plan(root: Path, features: dict[str, dict], obs_keys: tuple[str, ...] | Non
         if missing:
             raise DatasetError(f"{root}: missing feature for observation key(s) {missing} (the dataset has "
                                f"{available})")
-        plan = _Plan({k: v for k, v in plan.videos.items() if k in obs_keys},
+        plan = _FeatureMap({k: v for k, v in plan.videos.items() if k in obs_keys},
                      {k: v for k, v in plan.images.items() if k in obs_keys},
                      {k: v for k, v in plan.vectors.items() if k in obs_keys})
     return plan
@@ -396,7 +396,7 @@ def iter_lerobot(root: str | Path, obs_keys: tuple[str, ...] | None = None,
             reader.close()
 
 
-def _episode(root: Path, row: dict, data: _DataFiles, videos: dict[str, _VideoReader], plan: _Plan,
+def _episode(root: Path, row: dict, data: _DataFiles, videos: dict[str, _VideoReader], plan: _FeatureMap,
              features: dict, tasks: dict[int, str]) -> Episode:
     e = row["episode_index"]
     try:

@@ -17,6 +17,10 @@ cookie box, the bowl's own walls) stands above the fingertips, and so that the a
 lift and the release. Convex objects (cans, bottles, boxes) are grasped from the top across their narrowest
 side; when the fingers would land on the object itself there (a moka pot's body is wider than the open
 gripper), the height map finds a part they can close around (its lid knob).
+
+Why one ~1000-line module: the grasp planners (``_plan_*``) and the phase machine (``step``, ``_goal``) share one
+attempt's spot, footprint, height map and grasp, and a replan (``_replan``) runs the planners again from inside
+the phases; the geometry that needs no skill state already lives in ``_geometry``.
 """
 
 from __future__ import annotations
@@ -56,7 +60,7 @@ FLAT_HEIGHT = 0.025  # a dish lower than this (m) and wider than the open grippe
 
 
 @dataclass
-class _Plan:
+class _Grasp:
     grasp: np.ndarray  # eef position at the grasp
     yaw: float
     lift_z: float  # eef height for the transfer
@@ -164,7 +168,7 @@ class PickPlace(Skill):
         self.failed: list[np.ndarray] = []  # xy of grasps that did not lift the object
         self.attempts = 0
         self.started = False
-        self.plan: _Plan | None = None
+        self.plan: _Grasp | None = None
 
     # ---- targets -------------------------------------------------------------------------------------
 
@@ -344,13 +348,13 @@ class PickPlace(Skill):
 
     # ---- grasp planning --------------------------------------------------------------------------------
 
-    def _plan(self) -> _Plan:
+    def _plan(self) -> _Grasp:
         """The grasp, and a transfer height that the hand clears too."""
         plan = self._plan_grasp()
         plan.lift_z = max(plan.lift_z, self._hand_sweep_z(plan))
         return plan
 
-    def _plan_grasp(self) -> _Plan:
+    def _plan_grasp(self) -> _Grasp:
         sc, cfg = self.scene, self.config
         centre, half, axes = sc.body_frame_extent(self.obj)
         lo, hi = sc.aabb(self.obj)
@@ -373,12 +377,12 @@ class PickPlace(Skill):
         floor_z = self._floor_below(lo, hi)
         tip_z = max(z_top - cfg.top_depth, floor_z + cfg.floor_clearance)
         grasp = np.array([centre[0], centre[1], tip_z + TIP_BELOW_EEF])
-        plan = _Plan(grasp, closing_yaw(narrow), grasp[2] + self._lift_above_grasp())
+        plan = _Grasp(grasp, closing_yaw(narrow), grasp[2] + self._lift_above_grasp())
         if self._fingers_blocked(grasp, plan.yaw, tip_z):
             return self._plan_top(lo, hi, floor_z) or plan
         return plan
 
-    def _plan_chord(self, half: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> _Plan:
+    def _plan_chord(self, half: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> _Grasp:
         """A grasp for a dish too flat for a rim grasp (a plate: its rim is a 5 mm lip sloping up 20 degrees,
         up which an inner finger slides): the fingers close across a chord near the edge, just outside it,
         on the lip's two ends (tilted 20 degrees from vertical: the squeeze stays within friction), the chord
@@ -392,7 +396,7 @@ class PickPlace(Skill):
         out = np.sqrt(max(radius**2 - inner**2, 0.0)) + FINGER_TIP[2] + 0.002
         to_place = self._place_xy() - origin
         lift_above = self._lift_above_grasp()
-        best: tuple[float, _Plan] | None = None
+        best: tuple[float, _Grasp] | None = None
         for theta in np.linspace(0, 2 * np.pi, 24, endpoint=False):
             radial = np.array([np.cos(theta), np.sin(theta)])
             tangent = np.array([-radial[1], radial[0]])
@@ -414,12 +418,12 @@ class PickPlace(Skill):
             if any(np.linalg.norm(grasp[:2] - f) < cfg.retry_distance for f in self.failed):
                 score -= 0.5
             if best is None or score > best[0]:
-                best = (score, _Plan(grasp, yaw, grasp[2] + lift_above, cfg.chord_close_below))
+                best = (score, _Grasp(grasp, yaw, grasp[2] + lift_above, cfg.chord_close_below))
         if best is None:
             raise PlanningError(f"no chord of {sc.body_name(self.obj)!r} is clear for the fingers")
         return best[1]
 
-    def _plan_handle(self, spot: _Spot, lo: np.ndarray, hi: np.ndarray) -> _Plan | None:
+    def _plan_handle(self, spot: _Spot, lo: np.ndarray, hi: np.ndarray) -> _Grasp | None:
         """A grasp for a spot inside an enclosure whose ceiling is too low for the hand (10 cm tall pointing
         down, 7 cm pointing sideways, 20 cm across its fingers: the microwave is 14 cm tall): the gripper
         holds, from above, the part of the object that sticks out furthest towards the opening (a mug's
@@ -472,7 +476,7 @@ class PickPlace(Skill):
         if best is None:
             return None
         spot.origin = best[1]
-        return _Plan(grasp, yaw, grasp[2] + self._lift_above_grasp())
+        return _Grasp(grasp, yaw, grasp[2] + self._lift_above_grasp())
 
     def _rests_at(self, xy: np.ndarray, spot: _Spot) -> bool:
         """Whether the object's base, at ``xy``, rests on the surface the spot was planned on."""
@@ -496,7 +500,7 @@ class PickPlace(Skill):
                     highest_under(grid_z, along, across, FINGER_UPPER, 0.0) - FINGER_TIP_HEIGHT)
         return under > tip_z
 
-    def _plan_top(self, lo: np.ndarray, hi: np.ndarray, floor_z: float) -> _Plan | None:
+    def _plan_top(self, lo: np.ndarray, hi: np.ndarray, floor_z: float) -> _Grasp | None:
         """A top grasp where both fingers can go down beside some part of the object that stands between them
         (deepest pinch first, then nearest the object's centre, the hand clear of what stands around); None
         when there is none."""
@@ -507,7 +511,7 @@ class PickPlace(Skill):
                                           hi[2] + 0.1)
         roots = np.array([sc.ray_down(xy, hi[2] + 0.1)[1] for xy in grid_xy])
         over_xy, over_z = self._heightmap((lo[:2] + hi[:2]) / 2, span + HAND_HALF_LENGTH, 2.0, 2 * RAY_SPACING)
-        best: tuple[float, _Plan] | None = None
+        best: tuple[float, _Grasp] | None = None
         centres = grid_xy[(roots == self.obj)][::2]
         for c in centres:
             for yaw in np.linspace(-np.pi / 2, np.pi / 2, 12, endpoint=False):
@@ -530,7 +534,7 @@ class PickPlace(Skill):
                     score -= 0.5
                 if best is None or score > best[0]:
                     grasp = np.array([c[0], c[1], tip_z + TIP_BELOW_EEF])
-                    best = (score, _Plan(grasp, float(yaw), 0.0))
+                    best = (score, _Grasp(grasp, float(yaw), 0.0))
         if best is None:
             return None
         plan = best[1]
@@ -547,7 +551,7 @@ class PickPlace(Skill):
             zs.append(z)
         return max(min(zs), lo[2]) if np.isfinite(min(zs)) else lo[2]
 
-    def _plan_rim(self, half: np.ndarray, hi: np.ndarray) -> _Plan:
+    def _plan_rim(self, half: np.ndarray, hi: np.ndarray) -> _Grasp:
         """Pick the rim point where both fingers can go deepest: nothing (the bowl itself included) under them,
         with ``finger_clearance`` to spare sideways.
 
@@ -616,7 +620,7 @@ class PickPlace(Skill):
         if best is None:
             raise PlanningError("no rim point of the bowl is visible from above")
         _, yaw, grasp = best
-        return _Plan(grasp, yaw, grasp[2] + lift_above)
+        return _Grasp(grasp, yaw, grasp[2] + lift_above)
 
     def _fingers_fit_at(self, spot: _Spot, axis_rel: np.ndarray, radial: np.ndarray, tip_above_bottom: float) -> bool:
         """Whether the outer finger of a rim grasp (closed on the wall: from the gripper axis outwards by a
@@ -666,7 +670,7 @@ class PickPlace(Skill):
             top = max(t_hi[2], self._clear_height(start, (t_lo[:2] + t_hi[:2]) / 2, self.obj))
         return top + self.config.lift_clearance - lo[2]
 
-    def _hand_sweep_z(self, p: _Plan) -> float:
+    def _hand_sweep_z(self, p: _Grasp) -> float:
         """The lowest transfer height of the eef at which the hand (20 cm long along the closing axis, so it
         reaches well past the held object's sides) passes over everything on its way from the grasp to the
         release: a rim grasp on a bowl next to a cabinet otherwise carries the hand into the cabinet's side,

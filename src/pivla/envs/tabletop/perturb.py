@@ -58,6 +58,9 @@ Spec grammar (``--perturb``), comma-separated, order-free, whitespace ignored::
 (training on ``pick_place_seen``). The visual perturbations (all but the two events) have no collisions
 and draw from a random stream of their own, so a visually perturbed episode has exactly the physics and
 success of the clean one; each event draws from a further stream, so adding one changes no other draw.
+
+Why one ~700-line module: the spec grammar and the perturbations it names are one contract (a spec's text,
+its draws and its stream of random numbers must change together, or recorded episodes stop replaying).
 """
 
 from __future__ import annotations
@@ -368,7 +371,7 @@ def training_style(style: SceneStyle) -> dict[str, bool]:
 
 # -- mid-episode events -----------------------------------------------------------------------------------
 @dataclass
-class _Plan:
+class _EventDraw:
     """One episode's draw for an event: the step (trigger "step") and a uniform number choosing among the
     feasible directions when it fires."""
 
@@ -429,7 +432,7 @@ class Perturber:
         m, cfg = self.model, self.config
         self.task = _task_def(task_name(m))
         self.events: list[dict] = []
-        self._plans: dict[str, _Plan] = {}
+        self._plans: dict[str, _EventDraw] = {}
         self._push_offset: np.ndarray | None = None
         self._step = 0
         self.ee_site = m.site(arm.EE_SITE).id
@@ -479,7 +482,7 @@ class Perturber:
             if event is not None:
                 r = events_rng[name]
                 step = int(r.integers(event.timing.window[0], event.timing.window[1] + 1))
-                self._plans[name] = _Plan(event.distance, event.timing.trigger, step, float(r.uniform()))
+                self._plans[name] = _EventDraw(event.distance, event.timing.trigger, step, float(r.uniform()))
         if self.config.recovery > 0:
             self._plan_recovery(events_rng["recovery"])
 
@@ -508,7 +511,7 @@ class Perturber:
         name = kinds[int(r.integers(len(kinds)))]
         distance = float(r.uniform(*RECOVERY_CM)) / 100
         step = int(r.integers(RECOVERY_WINDOW[0], RECOVERY_WINDOW[1] + 1))
-        self._plans.setdefault(name, _Plan(distance, "step", step, float(r.uniform())))
+        self._plans.setdefault(name, _EventDraw(distance, "step", step, float(r.uniform())))
 
     def _training_scene(self, rng: np.random.Generator) -> None:
         """A training table (one of ``TRAIN_TABLE_MATERIALS``, random colour), floor, wall and key light."""
@@ -617,7 +620,7 @@ class Perturber:
             return data.xpos[self._target_ids[0]]
         return data.geom_xpos[self.model.geom("handle").id]
 
-    def _due(self, plan: _Plan, data: mujoco.MjData) -> bool:
+    def _due(self, plan: _EventDraw, data: mujoco.MjData) -> bool:
         if plan.trigger == "step":
             return self._step >= plan.step
         return float(np.linalg.norm(data.site_xpos[self.ee_site] - self._near_point(data))) <= NEAR_DISTANCE
@@ -631,7 +634,7 @@ class Perturber:
         rest_z = tasks.OBJECTS[self.target].rest_z
         return bool(np.linalg.norm(data.qvel[dof : dof + 3]) < 0.05 and data.xpos[body][2] < rest_z + 0.006)
 
-    def _displace_directions(self, plan: _Plan) -> list[np.ndarray]:
+    def _displace_directions(self, plan: _EventDraw) -> list[np.ndarray]:
         """Candidate unit shifts in the order this episode tries them: eight directions from a random angle,
         for a move only those without a component along the instructed direction (a jump never does part of
         the task)."""
@@ -659,7 +662,7 @@ class Perturber:
                 return False
         return True
 
-    def _displace(self, plan: _Plan, data: mujoco.MjData) -> None:
+    def _displace(self, plan: _EventDraw, data: mujoco.MjData) -> None:
         """Move the object if it is free and one of its candidate spots is fit to land on; else try again at
         the next step."""
         if not self._object_free(data):
@@ -676,7 +679,7 @@ class Perturber:
         self.events.append({"kind": "displace_object", "step": self._step, "object": self.target,
                             "shift": [float(shift[0]), float(shift[1]), 0.0]})
 
-    def _push(self, plan: _Plan, data: mujoco.MjData) -> None:
+    def _push(self, plan: _EventDraw, data: mujoco.MjData) -> None:
         """Joint offset that moves the tool centre ``plan.distance`` horizontally at constant orientation, in
         the first of eight directions (from this episode's angle) that the arm can reach; if none is, the push
         waits for the next step."""

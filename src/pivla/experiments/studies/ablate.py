@@ -22,7 +22,7 @@ from pivla.control.calibrate import CalibrationConfig
 from pivla.evaluation.stats import format_difference, percent_interval, wilson_interval
 from pivla.experiments.conditions import Cell
 from pivla.experiments.layout import AblationLayout
-from pivla.experiments.plan import Evaluation, Plan, eval_config
+from pivla.experiments.plan import Evaluation, EvaluationPlan, eval_config
 from pivla.experiments.recipes import INCREMENTAL, TRAIN_VARIANTS, execution_variant
 from pivla.experiments.render import Block, Table, write_markdown
 from pivla.experiments.results import ResultsStore
@@ -89,8 +89,8 @@ class AblationPlan:
     each execution variant (labelled by it)."""
 
     trained: tuple[str, ...]
-    models: Plan
-    executions: Plan
+    models: EvaluationPlan
+    executions: EvaluationPlan
 
     @staticmethod
     def model_key(ev: Evaluation) -> tuple[str]:
@@ -113,7 +113,8 @@ def plan(cfg: AblationConfig) -> AblationPlan:
               for v in trained if v in wanted for label in ("aurd", "fixed_h5")]
     executions = [Evaluation("full", cell, label, execution_variant(label)) for label in EXEC_VARIANTS
                   if label in wanted]
-    return AblationPlan(trained, Plan.of(models, episodes=cfg.episodes), Plan.of(executions, episodes=cfg.episodes))
+    return AblationPlan(trained, EvaluationPlan.of(models, episodes=cfg.episodes),
+                        EvaluationPlan.of(executions, episodes=cfg.episodes))
 
 
 def _train_and_calibrate(cfg: AblationConfig, layout: AblationLayout, variant: str) -> None:
@@ -143,7 +144,8 @@ def run_ablation(cfg: AblationConfig) -> str:
     return write_markdown(layout.report_md, report(cfg, layout, test))
 
 
-def _evaluate(cfg: AblationConfig, layout: AblationLayout, ev: Evaluation, plan: Plan, key: tuple[str]) -> dict:
+def _evaluate(cfg: AblationConfig, layout: AblationLayout, ev: Evaluation, plan: EvaluationPlan,
+              key: tuple[str]) -> dict:
     """Evaluate (or reuse a finished evaluation: an interrupted ablation continues where it stopped)."""
     return Evaluate(eval_config(ev, plan, policy=layout.policy(ev.policy), out=layout.evaluation(key),
                                 realism=cfg.realism, family=False, seed=cfg.seed, tasks=cfg.tasks,

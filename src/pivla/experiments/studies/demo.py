@@ -27,7 +27,7 @@ from pivla.envs.backend import BackendConfig
 from pivla.envs.collect import CollectConfig
 from pivla.experiments import conditions
 from pivla.experiments.layout import DemoLayout
-from pivla.experiments.plan import Evaluation, Plan, eval_config
+from pivla.experiments.plan import Evaluation, EvaluationPlan, eval_config
 from pivla.experiments.recipes import recipe_config
 from pivla.experiments.report import write_report
 from pivla.experiments.stages import Calibrate, Collect, Evaluate, Train, perform, validation_rollouts
@@ -111,7 +111,7 @@ def train_config(cfg: DemoConfig, data: Path, run: Path) -> TrainConfig:
     return tc
 
 
-def plans(cfg: DemoConfig) -> list[Plan]:
+def plans(cfg: DemoConfig) -> list[EvaluationPlan]:
     """The test evaluations, in their run order: every executor on every condition (with videos), the
     distraction sweep, then the latency cell synchronously and asynchronously."""
     unknown = sorted(set(cfg.conditions) - set(CONDITIONS))
@@ -121,15 +121,15 @@ def plans(cfg: DemoConfig) -> list[Plan]:
     def ev(cell: conditions.Cell, executor: str) -> Evaluation:
         return Evaluation(POLICY, cell, executor, executor_config(executor))
 
-    out = [Plan.of([ev(conditions.twin(c), e) for c in cfg.conditions for e in EXECUTORS],
-                   episodes=cfg.test_episodes, videos=2),
-           Plan.of([ev(conditions.distraction_level(lv), e) for lv in cfg.levels for e in cfg.level_executors],
-                   episodes=cfg.level_episodes)]
+    out = [EvaluationPlan.of([ev(conditions.twin(c), e) for c in cfg.conditions for e in EXECUTORS],
+                             episodes=cfg.test_episodes, videos=2),
+           EvaluationPlan.of([ev(conditions.distraction_level(lv), e) for lv in cfg.levels
+                              for e in cfg.level_executors], episodes=cfg.level_episodes)]
     if cfg.latency_ms is not None:
         for mode in (SyncConfig(), AsyncConfig(threshold=3)):
             cell = dataclasses.replace(conditions.IN_DISTRIBUTION, name=f"latency_{cfg.latency_ms}ms_{mode.kind}")
-            out.append(Plan.of([ev(cell, "fixed")], episodes=cfg.test_episodes, execution=mode,
-                               latency_ms=cfg.latency_ms))
+            out.append(EvaluationPlan.of([ev(cell, "fixed")], episodes=cfg.test_episodes, execution=mode,
+                                         latency_ms=cfg.latency_ms))
     return out
 
 

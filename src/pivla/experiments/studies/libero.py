@@ -34,7 +34,7 @@ from pivla.evaluation.runner import load_rows
 from pivla.evaluation.stats import format_difference, percent_interval, wilson_interval
 from pivla.experiments import conditions
 from pivla.experiments.layout import EPISODES, LiberoLayout, demo_files
-from pivla.experiments.plan import Evaluation, Plan, eval_config
+from pivla.experiments.plan import Evaluation, EvaluationPlan, eval_config
 from pivla.experiments.render import Block, Lines, Table, markdown, write_markdown
 from pivla.experiments.results import ResultsStore
 from pivla.experiments.stages import Calibrate, Collect, Evaluate, StageTimes, Train, perform, validation_rollouts
@@ -116,10 +116,10 @@ def check_rendering(data: Path, mesh_faces: int) -> None:
                              f"run with --mesh-faces {drawn}, or collect again into another --out")
 
 
-def plan(cfg: LiberoRunConfig) -> Plan:
+def plan(cfg: LiberoRunConfig) -> EvaluationPlan:
     """Every executor on the official init states (baselines monitored only when asked)."""
     cell = conditions.libero(cfg.suite)
-    return Plan.of([Evaluation(POLICY, cell, name, executor_config(
+    return EvaluationPlan.of([Evaluation(POLICY, cell, name, executor_config(
         name, **({} if name == "aurd" else {"monitor": cfg.monitor_baselines}))) for name in cfg.executors],
         episodes=cfg.init_states, videos=2)
 

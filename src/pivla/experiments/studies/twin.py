@@ -44,7 +44,7 @@ from pivla.envs.collect import CollectConfig
 from pivla.experiments import conditions
 from pivla.experiments.conditions import Cell
 from pivla.experiments.layout import TwinLayout, calibrated, demo_files, evaluation_done
-from pivla.experiments.plan import Evaluation, Plan, Split, eval_config
+from pivla.experiments.plan import Evaluation, EvaluationPlan, Split, eval_config
 from pivla.experiments.recipes import Kind, execution_variant, recipe_config
 from pivla.experiments.stages import (
     Collect,
@@ -201,7 +201,7 @@ class Benchmark:
         episodes = {"test": cfg.test_episodes, "validation": cfg.val_episodes, "train": cfg.rollout_episodes}[split]
         tasks = cfg.tasks if cell.suite == "pick_place" else None
         ev = Evaluation(policy, cell, label, executor)
-        stage = Evaluate(eval_config(ev, Plan((ev,), split=split, episodes=episodes),
+        stage = Evaluate(eval_config(ev, EvaluationPlan((ev,), split=split, episodes=episodes),
                                      policy=self.layout.policy(policy, seed),
                                      out=self.layout.evaluation(seed, split, policy, cell.name, label),
                                      realism=cfg.realism, family=True, tasks=tasks, workers=cfg.workers,
@@ -268,7 +268,7 @@ class Benchmark:
                     self.evaluate(seed, "validation", policy, self.cells[hardest], label, executor)
 
     # -- the plan ------------------------------------------------------------------------------------------
-    def test_plan(self, hardest: str) -> Plan:
+    def test_plan(self, hardest: str) -> EvaluationPlan:
         """Every test evaluation, each once where tables share it."""
         cfg, rs = self.cfg, self.recipes
         headline = self.decisions["failure_round"]["headline"]
@@ -297,7 +297,7 @@ class Benchmark:
         for policy in of_kind(rs, Kind.DEMO_COUNT):
             plan += each(policy, in_and_hard, ("aurd", "fixed"))
         plan += each(main, in_and_hard, ("aurd", "fixed"))
-        return Plan.of(plan, split="test", episodes=cfg.test_episodes)
+        return EvaluationPlan.of(plan, split="test", episodes=cfg.test_episodes)
 
     def test(self, hardest: str, policies: Iterable[str]) -> None:
         """The test plan's evaluations of these policies (test_plan.json lists the whole plan)."""
