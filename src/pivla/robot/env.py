@@ -9,7 +9,6 @@ task success, so ``info["success"]`` comes from an optional ``success_fn(obs)`` 
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -18,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 
 from pivla import arm
-from pivla.robot.robot import Camera, Robot, RobotState
+from pivla.robot.robot import Camera, Robot, RobotState, Ticker
 from pivla.robot.safety import SafetyError
 
 
@@ -55,7 +54,7 @@ class RobotEnv(gym.Env):
         self._target_mat = np.eye(3)
         self._q_cmd = robot.home_q.copy()
         self._opening = 1.0
-        self._next_t = 0.0
+        self._ticker = Ticker(self.config.control_hz)
 
     @property
     def control_hz(self) -> float:
@@ -76,7 +75,7 @@ class RobotEnv(gym.Env):
         self._opening = st.opening
         self._target_pos, self._target_mat = self.robot.kinematics.fk_mat(np.clip(st.q, *arm.JOINT_LIMITS.T))
         self._steps = 0
-        self._next_t = time.monotonic()
+        self._ticker.restart()
         return self.observe(st), {"success": False}
 
     def step(self, action):
@@ -101,12 +100,7 @@ class RobotEnv(gym.Env):
         self._target_pos, _ = self.robot.kinematics.fk_mat(q)
         self._target_mat = target_mat
         if cfg.realtime:
-            self._next_t += 1.0 / cfg.control_hz
-            delay = self._next_t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            else:
-                self._next_t = time.monotonic()
+            self._ticker.wait()
         self._steps += 1
         obs = self.observe()
         success = bool(self.success_fn(obs)) if self.success_fn else False

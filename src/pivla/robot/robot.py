@@ -24,6 +24,25 @@ from pivla.robot.safety import CheckedCommand, SafetyLayer
 log = logging.getLogger(__name__)
 
 
+class Ticker:
+    """Paces a control loop on the wall clock at ``hz``: ``wait`` sleeps until the next tick; a step that ran
+    late restarts the schedule from now instead of bursting to catch up."""
+
+    def __init__(self, hz: float) -> None:
+        self.period = 1.0 / hz
+        self._next = time.monotonic()
+
+    def restart(self) -> None:
+        self._next = time.monotonic()
+
+    def wait(self) -> None:
+        self._next += self.period
+        delay = self._next - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        else:
+            self._next = time.monotonic()
+
 @dataclass(frozen=True)
 class RobotState:
     q: np.ndarray  # (6,) rad, arm.JOINT_NAMES order

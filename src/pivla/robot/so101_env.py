@@ -11,7 +11,6 @@ trips the arm (it holds) and ``step`` raises ``ArmHeld`` until ``robot.resume()`
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,7 +18,7 @@ import gymnasium as gym
 import numpy as np
 
 from pivla.data.action_space import POSITION_SUFFIX, infer_action_space
-from pivla.robot.robot import Camera
+from pivla.robot.robot import Camera, Ticker
 from pivla.robot.safety import SafetyError
 from pivla.robot.so101 import MOTORS, ROBOT_TYPE, SO101, ArmHeld
 
@@ -52,7 +51,7 @@ class SO101Env(gym.Env):
         self.action_space = gym.spaces.Box(lower.astype(np.float32), upper.astype(np.float32), (len(MOTORS),),
                                            np.float32)
         self._steps = 0
-        self._next_t = 0.0
+        self._ticker = Ticker(self.config.fps)
 
     @property
     def control_hz(self) -> float:
@@ -72,7 +71,7 @@ class SO101Env(gym.Env):
                           self.robot.fault)
         self.robot.enable()
         self._steps = 0
-        self._next_t = time.monotonic()
+        self._ticker.restart()
         return self.observe(), {"success": False}
 
     def step(self, action):
@@ -85,12 +84,7 @@ class SO101Env(gym.Env):
             raise SafetyError(f"refusing non-finite action {a}; the arm holds")
         sent = self.robot.command(a)
         if self.config.realtime:
-            self._next_t += 1.0 / self.config.fps
-            delay = self._next_t - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            else:
-                self._next_t = time.monotonic()
+            self._ticker.wait()
         self._steps += 1
         obs = self.observe()
         return obs, 0.0, False, self._steps >= self.config.max_steps, {"success": False, "command": sent}
