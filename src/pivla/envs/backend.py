@@ -9,6 +9,7 @@ actor, and only the copy that finished counts. docs/cluster.md runs it on a mult
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import socket
@@ -97,13 +98,10 @@ class _Worker:
         return result
 
 
-def ray_map(run: Callable[[Any], Any], jobs: Sequence[Any], cfg: BackendConfig, *, workers: int,
-            setup: Callable[..., None] | None = None, setup_args: tuple = (), desc: str | None = None) -> Iterator[Any]:
-    """``run(job)`` for every job on Ray actors, yielded in job order. ``run`` and ``setup`` must be module-level
-    functions (actors import them by name). Ray is started on this machine when no address is given and shut
-    down at the end; a cluster joined, or a Ray already initialised by the caller, is left running."""
-    if not jobs:
-        return
+@contextlib.contextmanager
+def ray_session(cfg: BackendConfig, num_cpus: int | None = None) -> Iterator[Any]:
+    """Ray, joined at ``--ray-address`` or started on this machine with ``num_cpus`` (and shut down after); a
+    Ray the caller initialised is used as it is."""
     ray = import_ray()
     started = not ray.is_initialized()
     if started:
@@ -111,50 +109,62 @@ def ray_map(run: Callable[[Any], Any], jobs: Sequence[Any], cfg: BackendConfig, 
             check_reachable(cfg.ray_address)
             ray.init(address=cfg.ray_address, log_to_driver=False)
         else:
-            ray.init(num_cpus=min(os.cpu_count() or 1, workers * cfg.ray_worker_cpus), include_dashboard=False,
-                     log_to_driver=False)
-    actors: list[Any] = []
-    progress = tqdm(total=len(jobs), desc=desc, unit="ep", disable=desc is None, leave=False)
+            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
     try:
-        cpus = int(ray.cluster_resources().get("CPU", 0))
-        n = max(1, min(workers, len(jobs), cpus // cfg.ray_worker_cpus))  # more would wait for CPUs forever
-        remote = ray.remote(num_cpus=cfg.ray_worker_cpus, scheduling_strategy="SPREAD")(_Worker)
-
-        def spawn() -> Any:
-            actor = remote.remote(run, setup, setup_args)
-            actors.append(actor)
-            return actor
-
-        queue, running, finished, lost, next_out = deque(range(len(jobs))), {}, {}, Counter(), 0
-
-        def submit(actor: Any) -> None:
-            if queue:
-                i = queue.popleft()
-                running[actor.run.remote(jobs[i])] = (actor, i)
-
-        for _ in range(n):
-            submit(spawn())
-        while next_out < len(jobs):
-            if next_out in finished:
-                yield finished.pop(next_out)
-                next_out += 1
-                progress.update()
-                continue
-            [ref], _ = ray.wait(list(running), num_returns=1)
-            actor, i = running.pop(ref)
-            try:
-                finished[i] = ray.get(ref)
-            except ray.exceptions.RayActorError as e:
-                lost[i] += 1
-                if lost[i] >= JOB_ATTEMPTS:
-                    raise RuntimeError(f"job {i}: {lost[i]} Ray workers were lost running it; last: {e}") from e
-                log.warning("a Ray worker was lost during job %d; it runs again on a new worker", i)
-                queue.appendleft(i)
-                actor = spawn()
-            submit(actor)
+        yield ray
     finally:
-        progress.close()
-        for actor in actors:
-            ray.kill(actor)
         if started:
             ray.shutdown()
+
+
+def ray_map(run: Callable[[Any], Any], jobs: Sequence[Any], cfg: BackendConfig, *, workers: int,
+            setup: Callable[..., None] | None = None, setup_args: tuple = (), desc: str | None = None) -> Iterator[Any]:
+    """``run(job)`` for every job on Ray actors, yielded in job order. ``run`` and ``setup`` must be module-level
+    functions (actors import them by name). Ray is started on this machine when no address is given and shut
+    down at the end; a cluster joined, or a Ray already initialised by the caller, is left running."""
+    if not jobs:
+        return
+    with ray_session(cfg, num_cpus=min(os.cpu_count() or 1, workers * cfg.ray_worker_cpus)) as ray:
+        actors: list[Any] = []
+        progress = tqdm(total=len(jobs), desc=desc, unit="ep", disable=desc is None, leave=False)
+        try:
+            cpus = int(ray.cluster_resources().get("CPU", 0))
+            n = max(1, min(workers, len(jobs), cpus // cfg.ray_worker_cpus))  # more would wait for CPUs forever
+            remote = ray.remote(num_cpus=cfg.ray_worker_cpus, scheduling_strategy="SPREAD")(_Worker)
+
+            def spawn() -> Any:
+                actor = remote.remote(run, setup, setup_args)
+                actors.append(actor)
+                return actor
+
+            queue, running, finished, lost, next_out = deque(range(len(jobs))), {}, {}, Counter(), 0
+
+            def submit(actor: Any) -> None:
+                if queue:
+                    i = queue.popleft()
+                    running[actor.run.remote(jobs[i])] = (actor, i)
+
+            for _ in range(n):
+                submit(spawn())
+            while next_out < len(jobs):
+                if next_out in finished:
+                    yield finished.pop(next_out)
+                    next_out += 1
+                    progress.update()
+                    continue
+                [ref], _ = ray.wait(list(running), num_returns=1)
+                actor, i = running.pop(ref)
+                try:
+                    finished[i] = ray.get(ref)
+                except ray.exceptions.RayActorError as e:
+                    lost[i] += 1
+                    if lost[i] >= JOB_ATTEMPTS:
+                        raise RuntimeError(f"job {i}: {lost[i]} Ray workers were lost running it; last: {e}") from e
+                    log.warning("a Ray worker was lost during job %d; it runs again on a new worker", i)
+                    queue.appendleft(i)
+                    actor = spawn()
+                submit(actor)
+        finally:
+            progress.close()
+            for actor in actors:
+                ray.kill(actor)

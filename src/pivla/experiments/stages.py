@@ -10,12 +10,11 @@ validation demonstrations when it succeeded in none.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -24,7 +23,7 @@ from pivla.control.calibrate import CalibrationConfig, calibrate
 from pivla.control.executors import FixedConfig
 from pivla.data.read import read_dataset
 from pivla.envs import select_tasks
-from pivla.envs.backend import BackendConfig, check_reachable, import_ray
+from pivla.envs.backend import BackendConfig, ray_session
 from pivla.envs.collect import CollectConfig, collect_demos
 from pivla.evaluation.runner import EvalConfig, evaluate
 from pivla.experiments.conditions import Cell
@@ -203,25 +202,6 @@ def _train_task(cfg: TrainConfig) -> None:
     """A Ray task: the training, resumed from its checkpoints when an earlier attempt was interrupted."""
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     Train(cfg)()
-
-
-@contextlib.contextmanager
-def ray_session(dispatch: BackendConfig) -> Iterator[Any]:
-    """Ray, joined at ``--ray-address`` or started on this machine (and shut down after); a Ray the caller
-    initialised is used as it is."""
-    ray = import_ray()
-    started = not ray.is_initialized()
-    if started:
-        if dispatch.ray_address:
-            check_reachable(dispatch.ray_address)
-            ray.init(address=dispatch.ray_address, log_to_driver=False)
-        else:
-            ray.init(include_dashboard=False, log_to_driver=False)
-    try:
-        yield ray
-    finally:
-        if started:
-            ray.shutdown()
 
 
 @dataclass(frozen=True)
