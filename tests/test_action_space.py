@@ -205,7 +205,7 @@ def test_pivla_train_on_so101_gives_a_joint_position_policy(so101, so101_run):
     executor.reset()
     first = executor.act(policy, _obs(root))
     assert first.shape == (6,)
-    np.testing.assert_array_equal(executor.hold_action(policy.spec.action_space), first)  # holding repeats it
+    np.testing.assert_array_equal(executor.hold_action(policy.spec, _obs(root)), first)  # holding repeats it
 
 
 def test_so101_policy_serves_its_action_space(so101, so101_run, tmp_path):

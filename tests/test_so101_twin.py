@@ -157,7 +157,7 @@ def test_a_policy_trains_on_it_and_runs_in_the_twin(so101_data, tmp_path):
     assert np.all(env.command >= lo) and np.all(env.command <= hi)
 
     # with latency the arm holds where it is until the first chunk arrives: its present joint positions
-    from pivla.control.asynchronous import SyncConfig
+    from pivla.control.asynchronous import AsyncConfig, SyncConfig
 
     obs, _ = env.reset(seed=3)
     start = np.asarray(obs["state"], np.float32)
@@ -165,6 +165,18 @@ def test_a_policy_trains_on_it_and_runs_in_the_twin(so101_data, tmp_path):
                         latency="300")
     idle = [row for row in result.trace if row.get("idle")]
     assert result.steps == 6 and len(idle) == 3
+    np.testing.assert_allclose(result.actions[0], start, atol=1e-4)
+    # asynchronously too: the simulation steps on while the first chunk is in flight, the arm held where it is
+    never = {"tau_low": 1e9, "tau_high": 1e9, "v_thresh": -1e9}
+    for executor in (make_executor("fixed"), make_executor("aurd", **never), make_executor("ensemble")):
+        result = run_policy(env, policy, executor, seed=3, max_steps=6, execution=AsyncConfig(), latency="300")
+        idle = [row for row in result.trace if row.get("idle")]
+        assert result.steps == 6 and len(idle) == 3, executor.name
+        np.testing.assert_allclose(result.actions[:3], np.repeat(start[None], 3, 0), atol=1e-4)
+    # AURD that distrusts the episode's first step pauses there, holding the present pose
+    always = {"tau_low": -1.0, "tau_high": -1.0, "v_thresh": 2.0}
+    result = run_policy(env, policy, make_executor("aurd", **always), seed=3, max_steps=2)
+    assert result.trace[0]["event"] == "pause"
     np.testing.assert_allclose(result.actions[0], start, atol=1e-4)
 
 

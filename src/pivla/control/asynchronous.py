@@ -41,8 +41,9 @@ moment it arrives (or takes a newer chunk already waiting); the untrusted steps 
 none at zero latency. A chunk sent on the threshold instead waits until the current plan completes. The plan
 made after a cut runs unchecked (``commit_after_cut``). Only ``check="before"``.
 
-An arm on absolute targets (joint positions) has no hold command before its first action: the loop waits for
-the episode's first answer instead (the arm has not moved).
+An arm on absolute targets (joint positions) holds the present pose its observation reports until its first
+chunk arrives, as a synchronous one does; one whose observation does not report it has no hold command before
+its first action, and the loop waits for the episode's first answer instead (the arm has not moved).
 
 ACT ensembling asynchronously: a query whenever none is in flight; each step averages every arrived chunk's
 prediction for that step (chunks indexed from the step they were sent), or holds when none reaches it.
@@ -230,7 +231,7 @@ class AsyncExecutor(BaseExecutor):
         self._take_over(t)
         if self._due():
             self._send(obs, t, None)
-        self._await_first_chunk(policy, t)
+        self._await_first_chunk(policy, obs, t)
         return self._execute(policy, obs, t, self._signals(policy, obs, t))
 
     # -- queries and arrivals --------------------------------------------------------------------------
@@ -264,11 +265,12 @@ class AsyncExecutor(BaseExecutor):
             return
         self._ready = (arrival, query)
 
-    def _await_first_chunk(self, policy: ChunkPolicy, t: int) -> None:
-        """An arm on absolute targets (joint positions) has no hold command before its first action: until the
-        first chunk is there the loop waits for it instead (the arm has not moved), and it starts at its first
-        action. A first answer the link lost leaves nothing to hold: ConnectionError."""
-        if self.last_action is not None or not policy.spec.action_space.kind.absolute:
+    def _await_first_chunk(self, policy: ChunkPolicy, obs: dict, t: int) -> None:
+        """An arm on absolute targets (joint positions) whose observation does not report its present pose has
+        no hold command before its first action: until the first chunk is there the loop waits for it instead
+        (the arm has not moved), and it starts at its first action. A first answer the link lost leaves nothing
+        to hold: ConnectionError."""
+        if self.can_hold(policy.spec, obs):
             return
         while self._chunk is None and self._pending is not None:
             self._accept(self.link.wait(self._pending.id))
@@ -333,7 +335,7 @@ class AsyncExecutor(BaseExecutor):
         c = self._chunk
         row = self._row
         if c is None or c.remaining <= 0:
-            return self._emit(self.hold_action(policy.spec.action_space), idle=True, **row)
+            return self._emit(self.hold_action(policy.spec, obs), idle=True, **row)
         j = c.step
         action = c.plan.actions[j].copy()
         if c.k < len(self._blend):
@@ -386,7 +388,7 @@ class AsyncAURDExecutor(AsyncExecutor):
         self._receive(t)
         if self._chunk is None and self._pending is None and self._ready is None:
             self._send(obs, t, None)
-        self._await_first_chunk(policy, t)
+        self._await_first_chunk(policy, obs, t)
         while True:
             self._take_over(t)
             test = self._test(policy, obs, t)
@@ -399,8 +401,8 @@ class AsyncAURDExecutor(AsyncExecutor):
                     break
                 continue
             if chunk.k == 0 and chunk.sent == t:
-                if self._pauses < self.cfg.max_pauses and self._can_hold(policy):
-                    return self._pause(policy, test)
+                if self._pauses < self.cfg.max_pauses and self.can_hold(policy.spec, obs):
+                    return self._pause(policy, obs, test)
                 break  # FORCED
             cut = _Cut(test.event, test.u, test.v)
             self._row.update(cut=cut.event, cut_u=cut.u, cut_v=cut.v)
@@ -425,17 +427,14 @@ class AsyncAURDExecutor(AsyncExecutor):
         """The plan made right after a cut (the plan log's last entry is not COMPLETE) runs unchecked."""
         return self.cfg.commit_after_cut and bool(self.plans) and self.plans[-1][1] != Event.COMPLETE
 
-    def _can_hold(self, policy: ChunkPolicy) -> bool:
-        return self.last_action is not None or not policy.spec.action_space.kind.absolute
-
-    def _pause(self, policy: ChunkPolicy, test: _Test) -> np.ndarray:
+    def _pause(self, policy: ChunkPolicy, obs: dict, test: _Test) -> np.ndarray:
         """Hold pose one step instead of a plan's untrusted first step; the plan ends (PAUSE, H_exec = 0)."""
         c = self._chunk
         self._pauses += 1
         self.plans.append((c.k, Event.PAUSE))
         self._chunk = None
         row = self._row
-        return self._emit(self.hold_action(policy.spec.action_space), plan_step=c.step,
+        return self._emit(self.hold_action(policy.spec, obs), plan_step=c.step,
                           replanned=row.pop("replanned", False), u_act=c.plan.u_act[c.step], u_pred=test.u_pred,
                           u=test.u, v=test.v, event=Event.PAUSE, ended=row.pop("ended", None), committed=False,
                           chunk=c.id, **row)
@@ -529,7 +528,7 @@ class AsyncEnsembleExecutor(BaseExecutor):
             self.queries += 1
             self._row["sent"] = Sent.THRESHOLD
             self._receive(t)
-        if not self._history and self.last_action is None and policy.spec.action_space.kind.absolute:
+        if not self._history and not self.can_hold(policy.spec, obs):
             while not self._history and self._pending is not None:  # nothing to hold yet: wait (see AsyncExecutor)
                 self._accept(self.link.wait(self._pending.id), t)
             if not self._history:
@@ -538,7 +537,7 @@ class AsyncEnsembleExecutor(BaseExecutor):
         self._history = [h for h in self._history if t - h[0] < len(h[2].actions)]
         row = self._row
         if not self._history:
-            return self._emit(self.hold_action(policy.spec.action_space), idle=True, **row)
+            return self._emit(self.hold_action(policy.spec, obs), idle=True, **row)
         preds = np.stack([plan.normalized[t - sent] for sent, _, plan in self._history])
         action = policy.to_actions(temporal_ensemble(preds, self.cfg.m).astype(np.float32))
         sent, qid, newest = self._history[-1]

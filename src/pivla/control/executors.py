@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import Enum
@@ -34,7 +34,7 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 import tyro
 
-from pivla.control.contract import DEFAULT_ETA, ChunkPolicy
+from pivla.control.contract import DEFAULT_ETA, ChunkPolicy, PolicySpec
 from pivla.control.math import (
     CUTS,
     Event,
@@ -45,7 +45,6 @@ from pivla.control.math import (
     surprise,
     temporal_ensemble,
 )
-from pivla.data.action_space import ActionSpace
 
 EVERYDAYVLA_EXTEND_BELOW, EVERYDAYVLA_REPLAN_ABOVE = 0.03, 0.06  # AdaHorizon's constants in its own code
 
@@ -181,10 +180,18 @@ class BaseExecutor:
         self.t += 1
         return action
 
-    def hold_action(self, space: ActionSpace) -> np.ndarray:
+    def hold_action(self, spec: PolicySpec, obs: Mapping[str, Any]) -> np.ndarray:
         """Hold pose for one control step (``ActionSpace.hold``: zero motion and the gripper as it was for the
-        twin's end-effector deltas)."""
-        return np.asarray(space.hold(self.last_action), np.float32)
+        twin's end-effector deltas; the last target for joint positions, or before the first action the present
+        pose the observation reports, ``PolicySpec.present_pose``)."""
+        last = self.last_action if self.last_action is not None else spec.present_pose(obs)
+        return np.asarray(spec.action_space.hold(last), np.float32)
+
+    def can_hold(self, spec: PolicySpec, obs: Mapping[str, Any]) -> bool:
+        """Whether ``hold_action`` has a pose to hold: a delta space always does; joint positions after the first
+        action, or before it where the observation reports the present pose."""
+        return (self.last_action is not None or not spec.action_space.kind.absolute
+                or spec.present_pose(obs) is not None)
 
     def _pred_baseline(self, policy: ChunkPolicy) -> str:
         return getattr(policy.calibration, "pred_baseline", "none") or "none"
@@ -434,10 +441,10 @@ class AURDExecutor(BaseExecutor):
             if event is None or k == 0:
                 break
             ended, cut = self._end_plan(event), {"ended_u": u, "ended_v": v}  # replan from this observation
-        if event is not None and self._pauses < self.cfg.max_pauses:
+        if event is not None and self._pauses < self.cfg.max_pauses and self.can_hold(policy.spec, obs):
             self._pauses += 1
             self._end_plan(Event.PAUSE)
-            return self._emit(self.hold_action(policy.spec.action_space), plan_step=0, replanned=replanned,
+            return self._emit(self.hold_action(policy.spec, obs), plan_step=0, replanned=replanned,
                               u_act=p.u_act[0], u_pred=u_pred, u=u, v=v, event=Event.PAUSE, ended=ended,
                               committed=False, **cut)
         self._pauses = 0
