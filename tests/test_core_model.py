@@ -334,3 +334,26 @@ def test_pooled_image_tokens_replace_the_grid():
     assert grid.backbone.img_pos.shape[:3] == (1, n_cam, grid.backbone.vision.grid**2)
     assert pooled.backbone.img_pos.shape[:3] == (1, n_cam, 1)
     assert pooled(fake_batch()).continuous.shape == (3, CFG.chunk, CFG.action_dim)
+
+
+def test_film_starts_as_the_plain_cnn_and_then_reads_the_instruction():
+    """FiLM layers start at zero, so a FiLM model's first forward equals the same weights without FiLM; once
+    they move, two instructions give the same pictures different features; the target encoder stays unconditioned."""
+    def cfg(film: bool) -> ModelConfig:
+        return ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=1,
+                                                                  vision_channels=(16, 16, 32, 32), film=film))
+
+    torch.manual_seed(0)
+    plain = CMSModel(cfg(False), vocab_size=12)
+    film = CMSModel(cfg(True), vocab_size=12)
+    missing, unexpected = film.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing and all(k.startswith("backbone.film.") for k in missing)
+    batch = fake_batch()
+    torch.testing.assert_close(film.eval()(batch).continuous, plain.eval()(batch).continuous)
+    for lin in film.backbone.film:
+        torch.nn.init.normal_(lin.weight, std=0.5)
+    same_pictures = dict(batch, images=batch["images"][:1].expand_as(batch["images"]))
+    feats = film.backbone.vision.stages(same_pictures["images"], film=film.backbone._film(same_pictures))[-1]
+    assert not torch.allclose(feats[0], feats[1])  # one picture, two instructions, two readings
+    pictures = batch["images"]
+    torch.testing.assert_close(film.backbone.vision.pooled(pictures), plain.backbone.vision.pooled(pictures))

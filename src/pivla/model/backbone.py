@@ -67,9 +67,11 @@ class ConvEncoder(nn.Module):
         """(B, n_cam, 3, H, W) -> (B, n_cam, C, h, w)."""
         return self.stages(images)[-1]
 
-    def stages(self, images: torch.Tensor, centred: bool = False) -> list[torch.Tensor]:
+    def stages(
+        self, images: torch.Tensor, centred: bool = False, film: list[torch.Tensor] | None = None
+    ) -> list[torch.Tensor]:
         """The output of every stage, each (B, n_cam, C_i, h_i, w_i), of images in [0, 1] (or already
-        ``centre``d)."""
+        ``centre``d). ``film`` holds one (B, 2 * C_i) scale-and-shift per stage, shared by the cameras."""
         b, n = images.shape[:2]
         x = images.flatten(0, 1)
         if not centred:
@@ -80,6 +82,8 @@ class ConvEncoder(nn.Module):
             if i % 3 == 2:  # conv, norm, activation
                 for block in self.res[i // 3]:
                     x = block(x)
+                if film is not None:
+                    x = modulate(x, film[i // 3].repeat_interleave(n, dim=0))
                 outs.append(x.unflatten(0, (b, n)))
         return outs
 
@@ -90,6 +94,13 @@ class ConvEncoder(nn.Module):
         if grid == 1:
             return feats.mean(dim=(-1, -2)).flatten(1)
         return nn.functional.adaptive_avg_pool2d(feats.flatten(0, 1), grid).reshape(feats.shape[0], -1)
+
+
+def modulate(x: torch.Tensor, film: torch.Tensor) -> torch.Tensor:
+    """FiLM: (N, C, h, w) features times (1 + gamma) plus beta, per channel, from ``film`` = (N, 2C) [gamma, beta].
+    A zero ``film`` is the identity, so a FiLM layer initialised at zero starts as the unconditioned CNN."""
+    gamma, beta = film[:, :, None, None].chunk(2, dim=1)
+    return x * (1 + gamma) + beta
 
 
 class _ResBlock(nn.Module):
@@ -154,6 +165,12 @@ class SmallBackbone(nn.Module):
             self.kp_proj = nn.Sequential(nn.Linear(2 * bc.keypoints, d), nn.GELU(), nn.Linear(d, d))
             self.kp_cam = nn.Parameter(torch.randn(1, n_cam, d) * 0.02)
         self.word_emb = nn.Embedding(vocab_size, d, padding_idx=0)
+        self.film = None
+        if bc.film:
+            self.film = nn.ModuleList(nn.Linear(d, 2 * c) for c in bc.vision_channels)
+            for lin in self.film:
+                nn.init.zeros_(lin.weight)
+                nn.init.zeros_(lin.bias)
         self.text_pos = nn.Parameter(torch.randn(1, cfg.max_text_len, d) * 0.02)
         self.proprio_proj = nn.Sequential(nn.Linear(cfg.proprio_dim, d), nn.GELU(), nn.Linear(d, d))
         self.queries = nn.Parameter(torch.randn(1, self.n_cog + cfg.chunk, d) * 0.02)
@@ -164,7 +181,7 @@ class SmallBackbone(nn.Module):
         self.norm = nn.LayerNorm(d)
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        stages = self.vision.stages(batch["images"])
+        stages = self.vision.stages(batch["images"], film=self._film(batch))
         feats = stages[-1]  # (B, n_cam, C, h, w)
         b, n_cam = feats.shape[:2]
         cells = feats.flatten(3).transpose(2, 3) if self.grid_tokens else feats.mean(dim=(-1, -2)).unsqueeze(2)
@@ -184,6 +201,14 @@ class SmallBackbone(nn.Module):
         out = self.norm(self.fusion(tokens, src_key_padding_mask=pad))
         q = out[:, -(self.n_cog + self.chunk) :]
         return q[:, : self.n_cog], q[:, self.n_cog :]
+
+    def _film(self, batch: dict[str, torch.Tensor]) -> list[torch.Tensor] | None:
+        """Each CNN stage's (B, 2C) FiLM parameters from the mean of the instruction's word embeddings."""
+        if self.film is None:
+            return None
+        mask = batch["text_mask"].unsqueeze(-1).to(self.word_emb.weight.dtype)
+        words = (self.word_emb(batch["text_ids"]) * mask).sum(1) / mask.sum(1).clamp(min=1)
+        return [lin(words) for lin in self.film]
 
 
 def build_backbone(cfg: ModelConfig, vocab_size: int) -> nn.Module:
