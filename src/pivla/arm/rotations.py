@@ -168,3 +168,15 @@ def mat_from_rotvec(vec: np.ndarray) -> np.ndarray:
     if angle > 1e-12:
         quat = axis_angle_quat(tuple((vec / angle).tolist()), angle)
     return np.array(quat_to_mat(quat)).reshape(3, 3)
+
+
+def yaw_of_quat(quat: np.ndarray) -> float:
+    """The rotation about z (rad) of a unit quaternion (w, x, y, z): a body's heading on the table."""
+    w, x, y, z = quat
+    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
+def wrap_angle(angle: float, period: float = 2 * math.pi) -> float:
+    """``angle`` taken to [-period / 2, period / 2): the same direction for a shape that repeats every ``period``."""
+    return float((angle + period / 2) % period - period / 2)
+

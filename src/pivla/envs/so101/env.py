@@ -17,39 +17,35 @@ with LeRobot's gain, torque cap, dead zone), run at the physics rate, and ``stat
 
 from __future__ import annotations
 
-import string
 from typing import Any
 
 import gymnasium
 import mujoco
 import numpy as np
 
+from pivla.arm.rotations import yaw_of_quat
 from pivla.envs.so101 import model as arm
 from pivla.envs.so101 import tasks
 from pivla.envs.so101.scene import PHYSICS_DT, asset_files, scene_xml
 from pivla.envs.so101.servo import RAD_PER_STEP, ServoConfig, STS3215Bus, to_steps
+from pivla.envs.twin import MujocoTwin, check_twin_args, object_handles, observation_space
 
 CONTROL_HZ = 10
 SUBSTEPS = int(round(1.0 / (CONTROL_HZ * PHYSICS_DT)))
 CAMERAS = ("front", "wrist")
 STATE_KEY = "state"
 STAGES = ("reached", "grasped", "lifted", "placed")
-REALISM = ("ideal", "servo")
 # Where an episode starts (LeRobot units): the tool point 0.17 m ahead of the base and 0.075 m up, the jaws open,
 # pointing down and closing across the arm's heading; each episode adds up to START_JITTER degrees per body joint.
 START_POSE = np.array([7.0, -31.0, 30.0, 90.0, 100.0, 40.0])
 START_JITTER = 3.0
 
 
-def _yaw_of_quat(quat: np.ndarray) -> float:
-    w, x, y, z = quat
-    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
-
-
-class SO101TwinEnv(gymnasium.Env):
+class SO101TwinEnv(MujocoTwin):
     """One task of a suite; the model is built once and every reset only re-draws the state."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
+    scene_camera = "front"
 
     def __init__(
         self,
@@ -65,13 +61,7 @@ class SO101TwinEnv(gymnasium.Env):
         servo: ServoConfig | None = None,
         render_mode: str | None = None,
     ):
-        if realism not in REALISM:
-            raise ValueError(f"realism must be one of {REALISM}, got {realism!r}")
-        if not 16 <= int(image_size) <= 480:
-            raise ValueError(f"image_size must be in 16..480 px, got {image_size}")
-        unknown = [c for c in cameras if c not in CAMERAS]
-        if unknown:
-            raise ValueError(f"unknown cameras {unknown}; the SO-101 twin has {CAMERAS}")
+        check_twin_args("SO-101 twin", realism, image_size, cameras, CAMERAS)
         self.suite = suite
         self.task = tasks.get_task(suite, task)
         self.task_index = tasks.get_suite(suite).index(self.task)
@@ -101,26 +91,13 @@ class SO101TwinEnv(gymnasium.Env):
             m.actuator_ctrlrange[self._act] = np.stack([-limit, limit], axis=1)
             m.actuator_forcerange[self._act] = np.stack([-limit, limit], axis=1)
         self._jaw_geoms = [self._collision_geoms(arm.GRIPPER_BODY), self._collision_geoms(arm.MOVING_JAW_BODY)]
-        self._obj = {}
-        for name in self.task.objects:
-            jnt = m.joint(name).id
-            self._obj[name] = (m.jnt_qposadr[jnt], m.jnt_dofadr[jnt], m.geom(name).id, m.body(name).id)
+        self._obj = object_handles(m, self.task.objects)
         self._target_mocap = int(m.body_mocapid[m.body(self.task.target).id])
-        self._renderer: mujoco.Renderer | None = None
-        self._cam_ids = {c: m.camera(c).id for c in CAMERAS}
+        self.camera_ids = {c: m.camera(c).id for c in CAMERAS}
         self.lower, self.upper = arm.lerobot_limits()
-
-        n = self.image_size
-        spaces: dict[str, gymnasium.Space] = {
-            c: gymnasium.spaces.Box(0, 255, (n, n, 3), np.uint8) for c in self.cameras
-        }
-        spaces[STATE_KEY] = gymnasium.spaces.Box(-np.inf, np.inf, (len(arm.JOINTS),), np.float32)
-        spaces["instruction"] = gymnasium.spaces.Text(max_length=256, charset=string.printable)
-        self.observation_space = gymnasium.spaces.Dict(spaces)
+        self.observation_space = observation_space(self.cameras, self.image_size, {STATE_KEY: len(arm.JOINTS)})
         self.action_space = gymnasium.spaces.Box(self.lower.astype(np.float32), self.upper.astype(np.float32),
                                                  (len(arm.JOINTS),), np.float32)
-
-        self.episode_seed: int | None = None
         self.np_random, _ = gymnasium.utils.seeding.np_random(seed)
         self.instruction = self.task.instruction
         self.layout: dict = {}
@@ -145,12 +122,7 @@ class SO101TwinEnv(gymnasium.Env):
     # ----------------------------------------------------------------------------------------------- reset
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """New episode. The episode seed (given, or drawn from the env's generator) fixes everything."""
-        if seed is not None:
-            self.np_random, _ = gymnasium.utils.seeding.np_random(seed)
-            self.episode_seed = int(seed)
-        else:
-            self.episode_seed = int(self.np_random.integers(2**31 - 1))
-        rng_task, rng_lang = (np.random.default_rng(s) for s in np.random.SeedSequence(self.episode_seed).spawn(2))
+        rng_task, rng_lang = self.draw_episode(seed, 2)
         m, d = self.model, self.data
         mujoco.mj_resetData(m, d)
         self.layout = tasks.sample_layout(self.task, rng_task)
@@ -242,33 +214,11 @@ class SO101TwinEnv(gymnasium.Env):
             q = to_steps(q) * RAD_PER_STEP
         return arm.to_lerobot(q)
 
-    def _render_all(self) -> dict[str, np.ndarray]:
-        if not self.cameras:
-            return {}
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
-        out = {}
-        for cam in self.cameras:
-            self._renderer.update_scene(self.data, self._cam_ids[cam])
-            out[cam] = self._renderer.render().copy()
-        return out
-
     def _observation(self) -> dict[str, Any]:
         obs: dict[str, Any] = self._render_all()
         obs[STATE_KEY] = self.joint_positions().astype(np.float32)
         obs["instruction"] = self.instruction
         return obs
-
-    def render(self) -> np.ndarray:
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
-        self._renderer.update_scene(self.data, self._cam_ids["front"])
-        return self._renderer.render().copy()
-
-    def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
 
     # ------------------------------------------------------------------------------------ privileged state
     def _object_pos(self, name: str) -> np.ndarray:
@@ -302,7 +252,7 @@ class SO101TwinEnv(gymnasium.Env):
         for name, (_qadr, dadr, geom, body) in self._obj.items():
             state["objects"][name] = {
                 "pos": d.xpos[body].copy(),
-                "yaw": _yaw_of_quat(d.xquat[body]),
+                "yaw": yaw_of_quat(d.xquat[body]),
                 "speed": float(np.linalg.norm(d.qvel[dadr: dadr + 3])),
                 "grasped": all(self._touching(geom)),
             }

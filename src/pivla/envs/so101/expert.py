@@ -24,9 +24,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pivla.arm.rotations import wrap_angle
 from pivla.envs.so101 import tasks
 from pivla.envs.so101.env import CONTROL_HZ, SO101TwinEnv
 from pivla.envs.so101.model import BODY_JOINTS
+from pivla.envs.twin import check_misses, draw_miss
 
 Target = Callable[[dict], np.ndarray]
 STALL = 0.0015  # m over three steps: a phase whose tool point moves less than this has stalled
@@ -54,10 +56,6 @@ class ExpertConfig:
     miss_offset: tuple[float, float] = (0.025, 0.04)  # m, horizontal distance of a missed grasp from the cube
 
 
-def _wrap(angle: float, period: float) -> float:
-    return float((angle + period / 2) % period - period / 2)
-
-
 class Expert:
     """Callable actor: ``expert.reset(env, seed)`` once per episode, then ``action = expert(obs)``."""
 
@@ -65,10 +63,7 @@ class Expert:
 
     def __init__(self, config: ExpertConfig | None = None):
         self.config = config or ExpertConfig()
-        if not 0.0 <= self.config.miss <= 1.0:
-            raise ValueError(f"miss must be a share in [0, 1], got {self.config.miss}")
-        if self.config.miss > 0 and self.config.retries < 1:
-            raise ValueError("a deliberate miss needs retries >= 1 to recover from")
+        check_misses(self.config.miss, self.config.retries)
         if self.config.noise < 0:
             raise ValueError(f"noise must be >= 0 (degrees), got {self.config.noise}")
         self.env: SO101TwinEnv | None = None
@@ -90,10 +85,7 @@ class Expert:
         self.carry = cfg.carry + 0.008 * jitter[0]
         self.approach = cfg.approach + 0.01 * jitter[1]
         self.speed = cfg.speed * (1.0 + 0.15 * jitter[2])
-        self._miss = None
-        if cfg.miss > 0 and self.rng.uniform() < cfg.miss:
-            angle, dist = self.rng.uniform(-np.pi, np.pi), self.rng.uniform(*cfg.miss_offset)
-            self._miss = dist * np.array([np.cos(angle), np.sin(angle), 0.0])
+        self._miss = draw_miss(self.rng, cfg.miss, cfg.miss_offset)
         state = self._state()
         self._q = state["q"][:5].copy()  # IK seed: the last solution
         self._ref = state["tcp"].copy()  # the reference tool point (see _command)
@@ -193,11 +185,11 @@ class Expert:
         roll_lo, roll_hi = kin.lower[4] + ROLL_MARGIN, kin.upper[4] - ROLL_MARGIN
         options = []
         for k in range(4):
-            yaw = _wrap(cube["yaw"] + k * np.pi / 2, 2 * np.pi)
+            yaw = wrap_angle(cube["yaw"] + k * np.pi / 2, 2 * np.pi)
             q = kin.solve(above, yaw, self._q)
             pos_err, tilt = kin.errors(q, above, yaw)
             reached = pos_err < 0.003 and tilt < 0.1 and roll_lo <= q[4] <= roll_hi
-            options.append((not reached, abs(q[4] - self._q[4]), _wrap(yaw - heading, 2 * np.pi)))
+            options.append((not reached, abs(q[4] - self._q[4]), wrap_angle(yaw - heading, 2 * np.pi)))
         return min(options)[2]
 
     # ------------------------------------------------------------------------------------------- skills

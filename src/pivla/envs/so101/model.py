@@ -22,6 +22,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from pivla.arm.rotations import wrap_angle
 from pivla.data.action_space import SO101, SO101_MOTORS
 
 ASSET_DIR = Path(__file__).resolve().parents[1] / "assets" / "so101"
@@ -88,10 +89,6 @@ class IKConfig:
     tilt_weight: float = 0.05  # m of position error worth one radian of jaw tilt away from straight down
     yaw_weight: float = 0.03  # m per radian of jaw-axis yaw error
     tolerance: float = 2e-4  # m (and weighted rad)
-
-
-def _wrap(a: float) -> float:
-    return float((a + np.pi) % (2 * np.pi) - np.pi)
 
 
 class Kinematics:
@@ -173,7 +170,7 @@ class Kinematics:
             rows_j = [jp[:, cols], cfg.tilt_weight * jr[:, cols]]
             if yaw is not None:
                 jaw = rot[:, _JAW_AXIS]
-                err = _wrap(yaw - float(np.arctan2(jaw[1], jaw[0])))
+                err = wrap_angle(yaw - float(np.arctan2(jaw[1], jaw[0])))
                 rows_e.append(np.array([cfg.yaw_weight * err]))
                 rows_j.append(cfg.yaw_weight * jr[2:3, cols])
             e, jac = np.concatenate(rows_e), np.vstack(rows_j)

@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pivla.envs import twin
+
 CUBE_HALF = 0.0125  # m
 CUBE_MASS = 0.03  # kg
 BOWL_INNER, BOWL_WALL, BOWL_HEIGHT, BOWL_FLOOR = 0.052, 0.004, 0.028, 0.004  # m: inner radius, wall, rim, floor
@@ -70,22 +72,11 @@ SUITES: dict[str, list[TaskDef]] = {
 
 
 def get_suite(suite: str) -> list[TaskDef]:
-    if suite not in SUITES:
-        raise ValueError(f"unknown so101 suite {suite!r}; choose from {sorted(SUITES)}")
-    return SUITES[suite]
+    return twin.get_suite(SUITES, "so101", suite)
 
 
 def get_task(suite: str, task: int | str) -> TaskDef:
-    tasks = get_suite(suite)
-    if isinstance(task, (int, np.integer)) or (isinstance(task, str) and task.isdigit()):
-        idx = int(task)
-        if not 0 <= idx < len(tasks):
-            raise ValueError(f"task index {idx} out of range: suite {suite!r} has {len(tasks)} tasks")
-        return tasks[idx]
-    for t in tasks:
-        if t.name == task:
-            return t
-    raise ValueError(f"unknown task {task!r} in suite {suite!r}; known: {[t.name for t in tasks]}")
+    return twin.get_task(SUITES, "so101", suite, task)
 
 
 def _polar(rng: np.random.Generator) -> np.ndarray:

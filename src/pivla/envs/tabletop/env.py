@@ -16,7 +16,6 @@ noise, speed limit); ``"ideal"`` tracks them exactly (up to the position servos'
 
 from __future__ import annotations
 
-import string
 from typing import Any
 
 import gymnasium
@@ -25,10 +24,12 @@ import numpy as np
 
 from pivla import arm
 from pivla.arm.constants import CONTROL_HZ, IK_ITERATIONS, ROT_SCALE, TRANS_SCALE  # the action convention
+from pivla.arm.rotations import yaw_of_quat
 from pivla.envs.tabletop import tasks
 from pivla.envs.tabletop.perturb import PerturbConfig, Perturber, parse_perturb
 from pivla.envs.tabletop.scene import CAB_HALF_W, asset_files, scene_xml
 from pivla.envs.tabletop.servo import ServoConfig, ServoModel
+from pivla.envs.twin import MujocoTwin, check_twin_args, object_handles, observation_space
 
 PHYSICS_DT = 0.002
 SUBSTEPS = int(round(1.0 / (CONTROL_HZ * PHYSICS_DT)))
@@ -36,18 +37,13 @@ WORKSPACE = np.array([[0.05, -0.28, 0.005], [0.32, 0.28, 0.30]])  # tool-centre 
 CAMERAS = ("agentview_rgb", "eye_in_hand_rgb")
 _CAMERA_NAMES = {"agentview_rgb": "agentview", "eye_in_hand_rgb": "eye_in_hand"}
 STAGES = ("reached", "grasped", "lifted", "placed")
-REALISM = ("ideal", "servo")
 
 
-def _yaw_of_quat(quat: np.ndarray) -> float:
-    w, x, y, z = quat
-    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
-
-
-class TabletopEnv(gymnasium.Env):
+class TabletopEnv(MujocoTwin):
     """One task of a suite; the model is built once and every reset only re-draws the state."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_HZ}
+    scene_camera = "agentview_rgb"
 
     def __init__(
         self,
@@ -64,13 +60,7 @@ class TabletopEnv(gymnasium.Env):
         servo: ServoConfig | None = None,
         render_mode: str | None = None,
     ):
-        if realism not in REALISM:
-            raise ValueError(f"realism must be one of {REALISM}, got {realism!r}")
-        if not 16 <= int(image_size) <= 480:
-            raise ValueError(f"image_size must be in 16..480 px, got {image_size}")
-        unknown = [c for c in cameras if c not in CAMERAS]
-        if unknown:
-            raise ValueError(f"unknown cameras {unknown}; choose from {CAMERAS}")
+        check_twin_args("tabletop twin", realism, image_size, cameras, CAMERAS)
         self.suite = suite
         self.task = tasks.get_task(suite, task)
         self.task_index = tasks.get_suite(suite).index(self.task)
@@ -94,29 +84,16 @@ class TabletopEnv(gymnasium.Env):
         self._finger_act = np.array([m.actuator(n).id for n in arm.GRIPPER_JOINTS])
         self._finger_geoms = [m.geom(m.body(n).geomadr[0]).id for n in arm.GRIPPER_JOINTS]
         self._ee_site = m.site(arm.EE_SITE).id
-        self._obj = {}
-        for name in self.task.objects:
-            jnt = m.joint(name).id
-            self._obj[name] = (m.jnt_qposadr[jnt], m.jnt_dofadr[jnt], m.geom(name).id, m.body(name).id)
+        self._obj = object_handles(m, self.task.objects)
         if self.task.drawer:
             self._drawer_qadr = m.jnt_qposadr[m.joint("drawer").id]
             self._handle_geoms = {m.geom(g).id for g in ("handle", "handle_post_l", "handle_post_r")}
         protected = [np.array(tasks.OBJECTS[o].rgba) for o in self.task.objects]
         self.perturber = Perturber(m, self.perturb, protected)
-        self._renderer: mujoco.Renderer | None = None
-        self._cam_ids = {c: m.camera(_CAMERA_NAMES[c]).id for c in CAMERAS}
-
-        n = self.image_size
-        spaces: dict[str, gymnasium.Space] = {
-            c: gymnasium.spaces.Box(0, 255, (n, n, 3), np.uint8) for c in self.cameras
-        }
-        for key, dim in (("ee_pos", 3), ("ee_ori", 3), ("gripper_states", 2), ("joint_states", 6)):
-            spaces[key] = gymnasium.spaces.Box(-np.inf, np.inf, (dim,), np.float32)
-        spaces["instruction"] = gymnasium.spaces.Text(max_length=256, charset=string.printable)
-        self.observation_space = gymnasium.spaces.Dict(spaces)
+        self.camera_ids = {c: m.camera(_CAMERA_NAMES[c]).id for c in CAMERAS}
+        vectors = {"ee_pos": 3, "ee_ori": 3, "gripper_states": 2, "joint_states": 6}
+        self.observation_space = observation_space(self.cameras, self.image_size, vectors)
         self.action_space = gymnasium.spaces.Box(-1.0, 1.0, (7,), np.float32)
-
-        self.episode_seed: int | None = None
         self.np_random, _ = gymnasium.utils.seeding.np_random(seed)
         self.instruction = self.task.instruction
         self.q_cmd = arm.home_q()
@@ -129,14 +106,7 @@ class TabletopEnv(gymnasium.Env):
     # ----------------------------------------------------------------------------------------------- reset
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """New episode. The episode seed (given, or drawn from the env's generator) fixes everything."""
-        if seed is not None:
-            self.np_random, _ = gymnasium.utils.seeding.np_random(seed)
-            self.episode_seed = int(seed)
-        else:
-            self.episode_seed = int(self.np_random.integers(2**31 - 1))
-        rng_task, rng_perturb, rng_servo, rng_lang = (
-            np.random.default_rng(s) for s in np.random.SeedSequence(self.episode_seed).spawn(4)
-        )
+        rng_task, rng_perturb, rng_servo, rng_lang = self.draw_episode(seed, 4)
         m, d = self.model, self.data
         mujoco.mj_resetData(m, d)
         self.layout = tasks.sample_layout(self.task, rng_task)
@@ -226,17 +196,6 @@ class TabletopEnv(gymnasium.Env):
         return self._observation(), reward, success, truncated, info
 
     # ----------------------------------------------------------------------------------------- observation
-    def _render_all(self) -> dict[str, np.ndarray]:
-        if not self.cameras:
-            return {}
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
-        out = {}
-        for cam in self.cameras:
-            self._renderer.update_scene(self.data, self._cam_ids[cam])
-            out[cam] = self._renderer.render().copy()
-        return out
-
     def _observation(self) -> dict[str, Any]:
         d = self.data
         obs: dict[str, Any] = self._render_all()
@@ -246,17 +205,6 @@ class TabletopEnv(gymnasium.Env):
         obs["joint_states"] = d.qpos[self._arm_qadr].astype(np.float32)
         obs["instruction"] = self.instruction
         return obs
-
-    def render(self) -> np.ndarray:
-        if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
-        self._renderer.update_scene(self.data, self._cam_ids["agentview_rgb"])
-        return self._renderer.render().copy()
-
-    def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
 
     # ------------------------------------------------------------------------------------ privileged state
     def _object_pos(self, name: str) -> np.ndarray:
@@ -290,7 +238,7 @@ class TabletopEnv(gymnasium.Env):
         for name, (_qadr, _, geom, body) in self._obj.items():
             state["objects"][name] = {
                 "pos": d.xpos[body].copy(),
-                "yaw": _yaw_of_quat(d.xquat[body]),
+                "yaw": yaw_of_quat(d.xquat[body]),
                 "grasped": all(self._touching({geom})),
             }
         if self.task.drawer:

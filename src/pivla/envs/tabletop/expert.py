@@ -31,8 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from pivla import arm
+from pivla.arm.rotations import wrap_angle
 from pivla.envs.tabletop import tasks
 from pivla.envs.tabletop.env import ROT_SCALE, TRANS_SCALE, TabletopEnv
+from pivla.envs.twin import check_misses, draw_miss
 
 Target = Callable[[dict], np.ndarray]
 STALL = 0.0015  # m over three steps: a phase whose tool moves less than this has stalled
@@ -54,10 +56,6 @@ class ExpertConfig:
     miss_offset: tuple[float, float] = (0.02, 0.04)  # m, horizontal distance of a missed grasp from the object
 
 
-def _wrap(angle: float, period: float) -> float:
-    return float((angle + period / 2) % period - period / 2)
-
-
 class Expert:
     """Callable actor: ``expert.reset(env, seed)`` once per episode, then ``action = expert(obs)``."""
 
@@ -65,10 +63,7 @@ class Expert:
 
     def __init__(self, config: ExpertConfig | None = None):
         self.config = config or ExpertConfig()
-        if not 0.0 <= self.config.miss <= 1.0:
-            raise ValueError(f"miss must be a share in [0, 1], got {self.config.miss}")
-        if self.config.miss > 0 and self.config.retries < 1:
-            raise ValueError("a deliberate miss needs retries >= 1 to recover from")
+        check_misses(self.config.miss, self.config.retries)
         self.env: TabletopEnv | None = None
         self._plan: Iterator[np.ndarray] | None = None
         self.phase = ""
@@ -88,10 +83,7 @@ class Expert:
         self.lift = cfg.lift + 0.015 * jitter[0]
         self.approach = cfg.approach + 0.01 * jitter[1]
         self.gain = cfg.gain * (1.0 + 0.1 * jitter[2])
-        self._miss = None
-        if cfg.miss > 0 and self.rng.uniform() < cfg.miss:
-            angle, dist = self.rng.uniform(-np.pi, np.pi), self.rng.uniform(*cfg.miss_offset)
-            self._miss = dist * np.array([np.cos(angle), np.sin(angle), 0.0])
+        self._miss = draw_miss(self.rng, cfg.miss, cfg.miss_offset)
         self._plan = self._task_plan()
         self._executed: np.ndarray | None = None
         self.label: np.ndarray | None = None
@@ -159,7 +151,7 @@ class Expert:
         dest_heading = heading if dest is None else float(np.arctan2(dest[1], dest[0]))
         if spec.geom == "sphere":
             return heading
-        first = heading + _wrap(obj["yaw"] - heading, spec.yaw_symmetry)
+        first = heading + wrap_angle(obj["yaw"] - heading, spec.yaw_symmetry)
         candidates = first + spec.yaw_symmetry * np.arange(-2, 3)
         cost = np.abs(candidates - heading) + np.abs(candidates - dest_heading)
         return float(candidates[int(np.argmin(cost))])

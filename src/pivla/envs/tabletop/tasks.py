@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pivla.envs import twin
+
 MIN_DISPLACEMENT = 0.05  # m, along the instructed direction
 EXPERT_DISPLACEMENT = 0.09  # m, what the expert aims for
 DRAWER_OPEN_SUCCESS = 0.05  # m of travel for "open"
@@ -139,22 +141,11 @@ CABINET_FRONT_X = 0.24
 
 
 def get_suite(suite: str) -> list[TaskDef]:
-    if suite not in SUITES:
-        raise ValueError(f"unknown tabletop suite {suite!r}; choose from {sorted(SUITES)}")
-    return SUITES[suite]
+    return twin.get_suite(SUITES, "tabletop", suite)
 
 
 def get_task(suite: str, task: int | str) -> TaskDef:
-    tasks = get_suite(suite)
-    if isinstance(task, (int, np.integer)) or (isinstance(task, str) and task.isdigit()):
-        idx = int(task)
-        if not 0 <= idx < len(tasks):
-            raise ValueError(f"task index {idx} out of range: suite {suite!r} has {len(tasks)} tasks")
-        return tasks[idx]
-    for t in tasks:
-        if t.name == task:
-            return t
-    raise ValueError(f"unknown task {task!r} in suite {suite!r}; known: {[t.name for t in tasks]}")
+    return twin.get_task(SUITES, "tabletop", suite, task)
 
 
 def _uniform(rng: np.random.Generator, lo_hi: tuple[float, float]) -> float:
