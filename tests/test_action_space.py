@@ -301,3 +301,48 @@ def test_a_7d_run_trains_and_acts_as_before_action_spaces(tmp_path, inputs):
             np.testing.assert_allclose(out[key[4:]], want[key], rtol=1e-5, atol=1e-6, err_msg=key)
     assert policy.spec.action_space == EE_DELTA and json.loads((tmp_path / "run/config.json").read_text())[
         "model"]["cameras"] == ["agentview_rgb", "eye_in_hand_rgb"]
+
+
+# -- relative actions ---------------------------------------------------------------------------------------
+def test_chunk_offsets_start_from_the_pose_at_the_chunks_first_step():
+    from pivla.data.samples import chunk_offsets
+
+    actions = np.arange(12, dtype=np.float32).reshape(4, 3) * 10  # T=4, D=3, the last dim a gripper
+    pose = actions - 1.0
+    out, inside = chunk_offsets(actions, pose, 3, np.array([0, 1]))
+    assert out.shape == (4, 3, 3) and inside.tolist() == [[1, 1, 1], [1, 1, 1], [1, 1, 0], [1, 0, 0]]
+    np.testing.assert_array_equal(out[1, :, :2], actions[1:4, :2] - pose[1, :2])  # offsets from step 1's pose
+    np.testing.assert_array_equal(out[1, :, 2], actions[1:4, 2])  # the gripper stays absolute
+    np.testing.assert_array_equal(out[3, 2], np.r_[actions[3, :2] - pose[3, :2], actions[3, 2]])  # past the end
+
+
+def test_a_relative_policy_learns_offsets_and_acts_in_absolute_targets(so101, tmp_path):
+    root, src = so101
+    run = tmp_path / "rel"
+    assert main(["train", "--data", str(root), "--out", str(run), *TINY_FLAGS, "--model.relative-actions"]) == 0
+    policy = load_policy(run, device="cpu")
+    stats = policy.stats
+    assert stats.reference == "state" and stats.target is not None and stats.relative_dims().tolist() == [0, 1, 2, 3, 4]
+    # absolute statistics span the data (a joint's extremes are poses to reach), offsets their percentiles
+    train = np.concatenate([read_dataset(root)[e].actions for e in json.loads((run / "split.json").read_text())[
+        "train_episodes"]])
+    np.testing.assert_allclose(stats.action.q01, train.min(0), atol=1e-4)
+    np.testing.assert_allclose(stats.action.q99, train.max(0), atol=1e-4)
+    obs = _obs(root)
+    out = policy.infer(obs)
+    cont = out["continuous_normalized"]  # the heads are offsets: the arm adds the pose it is at
+    expected = stats.action.unnormalize(stats.action.normalize(stats.to_absolute(cont, obs["state"])))
+    expected[:, 5] = out["actions"][:, 5]  # the gripper from the discrete head
+    np.testing.assert_allclose(out["actions"], expected, atol=1e-4)
+    np.testing.assert_allclose(policy.to_actions(out["actions_normalized"]), out["actions"], atol=1e-4)
+    moved = {**obs, "state": obs["state"] + np.r_[5.0, 0, 0, 0, 0, 0].astype(np.float32)}
+    shift = policy.infer(moved)["actions"][:, 0] - out["actions"][:, 0]  # the same offsets from another pose
+    assert np.all(np.abs(shift) > 0.5)
+
+
+def test_relative_actions_are_refused_for_end_effector_deltas(tmp_path):
+    data = make_synthetic_dataset(tmp_path / "ee", episodes_per_goal=1, T=6, size=16)
+    with pytest.raises(DatasetError, match=r"relative actions are offsets from the present pose: the dataset's "
+                                           r"actions are ee_delta"):
+        main(["train", "--data", str(data), "--out", str(tmp_path / "run"), *TINY_FLAGS, "--model.relative-actions",
+              "--debug"])

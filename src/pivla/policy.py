@@ -25,6 +25,7 @@ from pivla.data.transforms import (
     images_to_tensor,
     input_pipeline,
     proprio_steps,
+    proprio_vector,
 )
 from pivla.model import encoder_runtime as er
 from pivla.model.backbone import ConvEncoder
@@ -167,13 +168,25 @@ class Policy:
         """Batched ``infer``: every output gains a leading batch dimension."""
         inputs = self.model_inputs(obs_list)
         heads = head_outputs(self.model(inputs), self.model.bin_centers)
-        out = unnormalize_actions(select_heads(heads, self.action_head, self.gripper_head, self.both_heads,
-                                               self.spec.action_space.gripper), self.stats.action)
+        selected = select_heads(heads, self.action_head, self.gripper_head, self.both_heads,
+                                self.spec.action_space.gripper)
+        out = unnormalize_actions(selected, self.stats.action) if self.stats.target is None else \
+            self._absolute(selected, obs_list)
         if not np.isfinite(out["actions"]).all():  # a finite input so far out of range that the network overflows
             raise ValueError("the policy computed non-finite actions from this observation (largest normalized "
                              f"proprio value {float(inputs['proprio'].abs().max()):.3g}; the training data's lie "
                              "within a few units)")
         return out
+
+    def _absolute(self, outputs: Mapping[str, np.ndarray],
+                  obs_list: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
+        """A relative policy's chunk as the absolute targets it exchanges: its offsets added to the present pose of
+        each observation, within the training data's range; ``actions_normalized`` in the absolute statistics, so
+        that ``to_actions`` (and temporal ensembling) read them as any policy's."""
+        key, dim = self.stats.reference, self.spec.action_dim
+        pose = np.stack([proprio_vector(obs, (key,), (dim,)) for obs in obs_list])
+        normalized = self.stats.action.normalize(self.stats.to_absolute(outputs["actions_normalized"], pose))
+        return {**outputs, "actions_normalized": normalized, "actions": self.stats.action.unnormalize(normalized)}
 
     def infer(self, obs: Mapping[str, Any]) -> dict[str, np.ndarray]:
         """One observation -> actions (K,D) un-normalised from the primary head (the gripper from

@@ -3,6 +3,10 @@
 Actions are mapped per dimension to [-1, 1] with the 1st/99th percentiles of the training set (OpenVLA's
 BOUNDS_Q99); a gripper that is an open/close command (the twin's and LIBERO's, -1 open, +1 close) is only
 thresholded. Proprioception is standardised. Statistics are plain JSON so a checkpoint never needs pickle.
+
+A policy that predicts absolute joint targets relative to the present pose (``ModelConfig.relative_actions``)
+has two action statistics: ``action`` normalises the absolute targets the policy exchanges (``to_actions``, the
+served metadata), ``target`` the chunk-relative offsets its heads are trained on.
 """
 
 from __future__ import annotations
@@ -22,10 +26,12 @@ class ActionStats:
     gripper_dim: int | None = EE_DELTA.binary_gripper
 
     @classmethod
-    def fit(cls, actions: np.ndarray, space: ActionSpace = EE_DELTA) -> ActionStats:
+    def fit(cls, actions: np.ndarray, space: ActionSpace = EE_DELTA, full_range: bool = False) -> ActionStats:
+        """The bounds of ``actions`` (N, D): their 1st and 99th percentiles, or with ``full_range`` their minimum
+        and maximum (absolute joint targets: a joint's extreme is a pose the arm has to reach, not an outlier)."""
         actions = np.asarray(actions, dtype=np.float64)
-        q01 = np.quantile(actions, 0.01, axis=0)
-        q99 = np.quantile(actions, 0.99, axis=0)
+        q01 = actions.min(axis=0) if full_range else np.quantile(actions, 0.01, axis=0)
+        q99 = actions.max(axis=0) if full_range else np.quantile(actions, 0.99, axis=0)
         return cls(q01=q01.tolist(), q99=q99.tolist(), gripper_dim=space.binary_gripper)
 
     def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -74,6 +80,10 @@ class NormStats:
     proprio_layout: list[tuple[str, int]] | None = None
     # what the actions mean (the training data's); None in runs written before it, which are EE_DELTA
     action_space: ActionSpace | None = None
+    # relative actions: the heads' targets (offsets from the pose under ``reference``, the proprio key of the
+    # action's dimension, at the chunk's first step); None when the heads predict the actions themselves
+    target: ActionStats | None = None
+    reference: str | None = None
 
     @property
     def space(self) -> ActionSpace:
@@ -81,13 +91,32 @@ class NormStats:
         return self.action_space or EE_DELTA
 
     def to_dict(self) -> dict:
-        return {"action": asdict(self.action), "proprio": asdict(self.proprio),
-                "proprio_layout": None if self.proprio_layout is None else [list(x) for x in self.proprio_layout],
-                "action_space": None if self.action_space is None else self.action_space.to_dict()}
+        out = {"action": asdict(self.action), "proprio": asdict(self.proprio),
+               "proprio_layout": None if self.proprio_layout is None else [list(x) for x in self.proprio_layout],
+               "action_space": None if self.action_space is None else self.action_space.to_dict()}
+        if self.target is not None:
+            out.update(target=asdict(self.target), reference=self.reference)
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> NormStats:
         layout, space = d.get("proprio_layout"), d.get("action_space")
         return cls(action=ActionStats(**d["action"]), proprio=StandardStats(**d["proprio"]),
                    proprio_layout=[(str(k), int(n)) for k, n in layout] if layout is not None else None,
-                   action_space=ActionSpace.from_dict(space) if space is not None else None)
+                   action_space=ActionSpace.from_dict(space) if space is not None else None,
+                   target=ActionStats(**d["target"]) if d.get("target") is not None else None,
+                   reference=d.get("reference"))
+
+    def relative_dims(self) -> np.ndarray:
+        """The action dimensions a relative policy predicts as offsets: all but the gripper (whose present
+        position lags and stops at a held object, so its command stays absolute)."""
+        dims = np.arange(self.space.dim)
+        return dims[dims != self.space.gripper] if self.space.gripper is not None else dims
+
+    def to_absolute(self, offsets: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """Physical chunk(s) (..., K, D) from normalised offsets, for the pose(s) ``reference`` (..., D) at the chunk's
+        first step (a relative policy's inverse of its training targets)."""
+        out = self.target.unnormalize(offsets)
+        dims = self.relative_dims()
+        out[..., dims] += np.asarray(reference, np.float32)[..., None, dims]
+        return out

@@ -69,23 +69,46 @@ def resolve_inputs(cfg: ModelConfig, layout: DatasetLayout, where: str) -> Model
 
 
 def fit_norm_stats(episodes: list[Episode], cfg: ModelConfig, space: ActionSpace = EE_DELTA) -> NormStats:
-    """The training set's statistics, with the action space they normalise."""
+    """The training set's statistics, with the action space they normalise (and, for ``cfg.relative_actions``,
+    the statistics of the chunk offsets the heads learn)."""
     actions = np.concatenate([ep.actions for ep in episodes])
     proprio = np.concatenate([proprio_vector(ep.obs, cfg.proprio_keys) for ep in episodes])
     if proprio.shape[-1] != cfg.proprio_dim:
         raise DatasetError(f"proprio keys {cfg.proprio_keys} give {proprio.shape[-1]} dims, "
                            f"config says {cfg.proprio_dim}")
     layout = [(k, int(np.asarray(episodes[0].obs[k]).shape[-1])) for k in cfg.proprio_keys]
-    return NormStats(action=ActionStats.fit(actions, space), proprio=StandardStats.fit(proprio), proprio_layout=layout,
-                     action_space=space)
+    stats = NormStats(action=ActionStats.fit(actions, space, full_range=space.kind.absolute),
+                      proprio=StandardStats.fit(proprio), proprio_layout=layout, action_space=space)
+    if not cfg.relative_actions:
+        return stats
+    if not space.kind.absolute:
+        raise DatasetError(f"relative actions are offsets from the present pose: the dataset's actions are "
+                           f"{space.describe()}, not absolute targets")
+    reference = next((k for k, n in layout if n == space.dim), None)
+    if reference is None:
+        raise DatasetError(f"relative actions need the present pose among the proprio keys: none of {layout} has the "
+                           f"actions' {space.dim} dimensions")
+    stats = dataclasses.replace(stats, reference=reference)
+    offsets = [chunk_offsets(ep.actions, ep.obs[reference], cfg.chunk, stats.relative_dims()) for ep in episodes]
+    return dataclasses.replace(stats, target=ActionStats.fit(np.concatenate([o[m] for o, m in offsets]), space))
+
+
+def chunk_offsets(actions: np.ndarray, pose: np.ndarray, chunk: int, dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every step's chunk of targets (T, K, D), ``dims`` as offsets from the pose at the chunk's first step (the
+    rest as they are), past the episode's end repeating its last action; and which steps are inside it (T, K)."""
+    T = len(actions)
+    steps = np.arange(T)[:, None] + np.arange(chunk)[None]
+    out = np.asarray(actions, np.float32)[np.minimum(steps, T - 1)]
+    out[..., dims] -= np.asarray(pose, np.float32)[:, None, dims]
+    return out, steps < T
 
 
 @dataclass
 class PreparedEpisode:
     images: np.ndarray  # (T, n_cam, S, S, 3) uint8
     proprio: np.ndarray  # (T, P) normalized
-    actions: np.ndarray  # (T, D) normalized to [-1, 1]
-    bins: np.ndarray  # (T, D) int64
+    actions: np.ndarray  # (T, D) normalized to [-1, 1]; a relative policy's: each step's chunk, (T, K, D)
+    bins: np.ndarray  # int64, the shape of ``actions``
     rewards: np.ndarray
     dones: np.ndarray
     text_ids: np.ndarray
@@ -98,7 +121,11 @@ def prepare_episode(ep: Episode, cfg: ModelConfig, stats: NormStats, text: WordT
     try:
         lengths = None if stats.proprio_layout is None else [n for _, n in stats.proprio_layout]
         obs = input_pipeline(cfg, stats.proprio, text, lengths)({**ep.obs, "instruction": ep.instruction})
-        targets = NormalizeActions(stats.action, cfg.n_bins)({"actions": ep.actions})
+        if stats.target is None:
+            targets = NormalizeActions(stats.action, cfg.n_bins)({"actions": ep.actions})
+        else:
+            offsets, _ = chunk_offsets(ep.actions, ep.obs[stats.reference], cfg.chunk, stats.relative_dims())
+            targets = NormalizeActions(stats.target, cfg.n_bins)({"actions": offsets})
     except DatasetError as e:
         raise DatasetError(f"episode {ep.instruction!r}: {e}") from None
     return PreparedEpisode(
@@ -219,10 +246,11 @@ class ChunkDataset:
             ks = np.ones(self.sp_steps, np.int64)
             sp_mask = np.zeros(self.sp_steps, np.float32)
         future = np.minimum(t + ks, T - 1)
+        chunks = ep.actions.ndim == 3  # a relative policy's targets, one chunk per step
         return {
             **self.observation(e, t),
-            "actions": ep.actions[idx],
-            "bins": ep.bins[idx],
+            "actions": ep.actions[t] if chunks else ep.actions[idx],
+            "bins": ep.bins[t] if chunks else ep.bins[idx],
             "action_mask": valid.astype(np.float32),
             "imitate": np.float32(ep.imitate),
             "advantages": np.where(valid, self.advantages[e][idx], 0.0).astype(np.float32),

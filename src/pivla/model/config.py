@@ -115,6 +115,10 @@ class ModelConfig:
     proprio_dim: int = sum(PROPRIO_LENGTHS.values())
     """Length of the concatenated proprio vector, derived from the keys: the sum of their lengths in the
     training dataset (0 in a training config: training sums them; a value given must agree)."""
+    relative_actions: bool = False
+    """Absolute joint targets only: the heads predict each chunk's targets as offsets from the present pose (the
+    proprio key of the action's dimension) at its first step, all but the gripper (openpi's delta actions); the
+    policy adds the pose back, so what it exchanges stays absolute."""
     max_text_len: int = 16
     """Instruction tokens kept."""
     state_hidden: int = 256
