@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from pivla.training.config import PRESETS
+from pivla.training.config import PRESETS, PresetName
 from pivla.training.trainer import Trainer
 
 
@@ -25,7 +25,7 @@ class DataBenchConfig:
 
     data: str
     """Dataset directory (HDF5 files or a LeRobot v3 dataset)."""
-    preset: Literal["default", "libero", "paper"] = "default"
+    preset: PresetName = "default"
     """Training preset whose cameras, resolution and proprio keys are loaded."""
     image_store: Literal["auto", "memory", "disk"] = "auto"
     """Where the pictures are held (``pivla train --image-store``)."""

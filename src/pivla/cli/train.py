@@ -6,13 +6,13 @@ import argparse
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import tyro
 
 from pivla.config import from_dict
 from pivla.io import read_json
-from pivla.training.config import PRESETS, TrainConfig
+from pivla.training.config import PRESETS, PresetName, TrainConfig
 from pivla.training.merge import MergeConfig
 
 
@@ -21,9 +21,10 @@ class TrainCommand:
     """A training run, with where its defaults come from."""
 
     run: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
-    preset: Literal["default", "libero", "paper"] = "default"
+    preset: PresetName = "default"
     """Named defaults: default is the validated twin recipe; libero: LIBERO's cameras and proprio at 128 px;
-    paper: an OpenVLA-style VLM with LoRA 32 and a DINOv2 target (local checkpoints)."""
+    paper: an OpenVLA-style VLM with LoRA 32 and a DINOv2 target (local checkpoints); so101: the SO-101's 80-px
+    cameras read for the named cube (FiLM)."""
     config: str | None = None
     """Start from this JSON config (e.g. a run's config.json) instead of a preset; flags override it."""
     resume: bool = False

@@ -38,8 +38,8 @@ class BackboneConfig:
     res_blocks: tuple[int, ...] = ()
     """Residual convolutions per CNN stage (empty: none)."""
     film: bool = False
-    """Scale and shift every CNN stage's channels by the instruction (FiLM, Perez et al. 2018), so the pictures
-    are read for the object the words name before they are pooled into tokens and keypoints."""
+    """Scale and shift every CNN stage's channels by the instruction (FiLM, Perez et al. 2018), so the pictures are
+    read for the object the words name before they are pooled into tokens and keypoints."""
     grid_tokens: bool = False
     """One token per cell of the last CNN grid instead of one pooled token per camera: with keypoints
     carrying the coordinates, pooled tokens cut the sequence from ~100 tokens to ~30."""

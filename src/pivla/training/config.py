@@ -7,6 +7,7 @@ Importing this module imports no torch, so the command line can show ``pivla tra
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -163,4 +164,15 @@ def paper_preset() -> TrainConfig:
     return dataclasses.replace(base, model=model, lr=5e-5, batch_size=8, grad_accum=4, steps=50_000, warmup=1000)
 
 
-PRESETS = {"default": TrainConfig, "libero": libero_preset, "paper": paper_preset}
+def so101_preset() -> TrainConfig:
+    """The SO-101 (its twin's demonstrations or a LeRobot recording): 80-px cameras read for the cube the
+    instruction names (FiLM; docs/experiments.md#film-on-the-instruction)."""
+    base = TrainConfig()
+    model = dataclasses.replace(base.model, image_size=80,
+                                backbone=dataclasses.replace(base.model.backbone, film=True))
+    return dataclasses.replace(base, model=model)
+
+
+PresetName = Literal["default", "libero", "paper", "so101"]
+PRESETS: dict[str, Callable[[], TrainConfig]] = {"default": TrainConfig, "libero": libero_preset,
+                                                 "paper": paper_preset, "so101": so101_preset}
