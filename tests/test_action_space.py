@@ -348,10 +348,11 @@ def test_relative_actions_are_refused_for_end_effector_deltas(tmp_path):
               "--debug"])
 
 
-def test_the_so101_preset_trains_a_film_policy_on_a_lerobot_recording(so101, tmp_path):
+def test_the_so101_preset_trains_a_film_relative_policy_on_a_lerobot_recording(so101, tmp_path):
     root, _ = so101
     run = tmp_path / "preset"
     assert main(["train", "--preset", "so101", "--data", str(root), "--out", str(run), *TINY_FLAGS]) == 0
     policy = load_policy(run, device="cpu")
     assert policy.cfg.backbone.film and policy.model.backbone.film is not None
+    assert policy.cfg.relative_actions and policy.stats.reference == "state"
     assert policy.infer(_obs(root))["actions"].shape == (8, 6)

@@ -166,9 +166,10 @@ def paper_preset() -> TrainConfig:
 
 def so101_preset() -> TrainConfig:
     """The SO-101 (its twin's demonstrations or a LeRobot recording): 80-px cameras read for the cube the
-    instruction names (FiLM; docs/experiments.md#film-on-the-instruction)."""
+    instruction names (FiLM), joint targets learnt as offsets from the present pose
+    (docs/experiments.md#film-on-the-instruction)."""
     base = TrainConfig()
-    model = dataclasses.replace(base.model, image_size=80,
+    model = dataclasses.replace(base.model, image_size=80, relative_actions=True,
                                 backbone=dataclasses.replace(base.model.backbone, film=True))
     return dataclasses.replace(base, model=model)
 
