@@ -24,7 +24,7 @@ class TrainCommand:
     preset: PresetName = "default"
     """Named defaults: default is the validated twin recipe; libero: LIBERO's cameras and proprio at 128 px;
     paper: an OpenVLA-style VLM with LoRA 32 and a DINOv2 target (local checkpoints); so101: the SO-101's 80-px
-    cameras read for the named cube (FiLM), relative joint targets."""
+    cameras read for the named cube (FiLM), relative joint targets, 8000 steps."""
     config: str | None = None
     """Start from this JSON config (e.g. a run's config.json) instead of a preset; flags override it."""
     resume: bool = False

@@ -166,12 +166,12 @@ def paper_preset() -> TrainConfig:
 
 def so101_preset() -> TrainConfig:
     """The SO-101 (its twin's demonstrations or a LeRobot recording): 80-px cameras read for the cube the
-    instruction names (FiLM), joint targets learnt as offsets from the present pose
+    instruction names (FiLM), joint targets learnt as offsets from the present pose, 8000 steps
     (docs/experiments.md#film-on-the-instruction)."""
     base = TrainConfig()
     model = dataclasses.replace(base.model, image_size=80, relative_actions=True,
                                 backbone=dataclasses.replace(base.model.backbone, film=True))
-    return dataclasses.replace(base, model=model)
+    return dataclasses.replace(base, model=model, steps=8000)
 
 
 PresetName = Literal["default", "libero", "paper", "so101"]
