@@ -13,7 +13,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from pivla.data.action_space import EE_DELTA, ActionSpace
+from pivla.data.action_space import EE_DELTA, ActionSpace, pose_key
 
 # Eq. 13's weight of U_act in U when nothing was calibrated (docs/method.md, "AURD")
 DEFAULT_ETA = 0.7
@@ -66,12 +66,8 @@ class PolicySpec:
         """Where an arm on absolute targets is now, read from an observation: the first proprio key of the
         action's dimension (LeRobot's ``observation.state`` beside ``action``, both ``<joint>.pos``). None for a
         delta action space, which holds by commanding zero motion."""
-        if not self.action_space.kind.absolute:
-            return None
-        for key, n in self.proprio:
-            if n == self.action_dim and key in obs:
-                return np.asarray(obs[key], np.float32).reshape(-1)
-        return None
+        key = pose_key(self.proprio, self.action_space)
+        return np.asarray(obs[key], np.float32).reshape(-1) if key is not None and key in obs else None
 
     def to_dict(self) -> dict[str, Any]:
         return {"cameras": list(self.cameras), "image_size": self.image_size,

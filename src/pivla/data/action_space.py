@@ -121,6 +121,14 @@ POSITION_SUFFIX = ".pos"  # LeRobot's name for a joint's absolute position featu
 _DEGREES, _GRIPPER_PERCENT = "deg", "percent"
 
 
+def pose_key(proprio: Sequence[tuple[str, int]], space: ActionSpace) -> str | None:
+    """The proprio key that reports the present pose of an arm on absolute targets: the first of the action's
+    dimension (LeRobot's ``observation.state`` beside ``action``); None for a delta space or when none has it."""
+    if not space.kind.absolute:
+        return None
+    return next((key for key, n in proprio if n == space.dim), None)
+
+
 def infer_action_space(names: Sequence[str]) -> ActionSpace:
     """An action space from a dataset's dimension names alone: the twin's names are ``EE_DELTA``; all names
     ``<joint>.pos`` are absolute joint positions (LeRobot's arms: degrees, a ``gripper`` joint 0..100);

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pivla.data.action_space import EE_DELTA, ActionSpace
+from pivla.data.action_space import EE_DELTA, ActionSpace, pose_key
 from pivla.data.episode import DatasetError, DatasetLayout, Episode
 from pivla.data.normalize import ActionStats, NormStats, StandardStats
 from pivla.data.text import WordTokenizer
@@ -84,7 +84,7 @@ def fit_norm_stats(episodes: list[Episode], cfg: ModelConfig, space: ActionSpace
     if not space.kind.absolute:
         raise DatasetError(f"relative actions are offsets from the present pose: the dataset's actions are "
                            f"{space.describe()}, not absolute targets")
-    reference = next((k for k, n in layout if n == space.dim), None)
+    reference = pose_key(layout, space)
     if reference is None:
         raise DatasetError(f"relative actions need the present pose among the proprio keys: none of {layout} has the "
                            f"actions' {space.dim} dimensions")
