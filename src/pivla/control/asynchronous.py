@@ -17,10 +17,13 @@ A chunk's executor horizon counts from the first action it executes (fixed: ``ho
 choice on the chunk's remaining U_act; AURD: H) and is never exceeded: a plan that runs out before the next
 chunk arrives holds pose (an idle step), so a lost link stops the arm instead of running the old chunk on.
 
-The seam (``seam``): ``switch`` executes the new chunk's due action at once; ``blend`` mixes its first
-``blend_steps`` actions linearly with what the old chunk still had for those steps (old weight
-(b - i) / (b + 1) at the i-th step after the seam, i = 0..b-1; the gripper always the new chunk's), as far as
-the old chunk's horizon reaches.
+The seam (``seam``): ``align`` (the default) executes the new chunk's due action at once and, for end-effector
+deltas, adds to its first ``blend_steps`` actions equal shares of the motion it planned for the skipped steps
+minus the motion commanded over them (joint targets need nothing, they are the chunk's path; actions of unknown
+kind are left as they are); ``switch`` executes the due action as it is; ``blend`` mixes its first
+``blend_steps`` actions linearly with what the old chunk still had for those steps (old weight (b - i) / (b + 1)
+at the i-th step after the seam, i = 0..b-1; the gripper always the new chunk's), as far as the old chunk's
+horizon reaches.
 
 Chunks that are not executed: one that arrives when the episode has moved past all of its actions is dropped
 and counted (``stale``); an answer that is not for the query in flight (another observation) is never
@@ -77,8 +80,10 @@ from pivla.control.math import (
     combine_uncertainty,
     temporal_ensemble,
 )
+from pivla.data.action_space import ActionKind
 
 MOTION = slice(0, 6)  # the end-effector dims of an action: blended at seams and differenced for jerk
+MAX_SKIPPED = 64  # seam="align": steps of commanded motion remembered (a chunk that skips more is stale anyway)
 
 
 @dataclass
@@ -103,11 +108,15 @@ class AsyncConfig:
     in actions); auto: the expected delay in control steps (the latency's mean at the control rate; measured
     round trips with --latency-ms real), so that at 0 ms async is sync and the new chunk lands as the old one
     runs out. AURD also sends when its test cuts the plan."""
-    seam: Literal["switch", "blend"] = "switch"
-    """How a new chunk takes over: switch (its due action at once), or blend (its first blend_steps actions
+    seam: Literal["align", "switch", "blend"] = "align"
+    """How a new chunk takes over: align (its due action at once, and with end-effector deltas its first
+    blend_steps actions also make up the difference between the motion it planned for the steps it skipped and
+    the motion executed meanwhile, so the arm follows the path the chunk planned from its observation; joint
+    targets already are that path), switch (its due action at once), or blend (its first blend_steps actions
     mixed linearly with the old chunk's)."""
     blend_steps: int = 2
-    """blend: steps over which the old chunk's weight falls linearly to 0."""
+    """blend: steps over which the old chunk's weight falls linearly to 0; align: steps the difference is spread
+    over."""
 
 
 ExecutionConfig = _choice(SyncConfig) | _choice(AsyncConfig)
@@ -120,8 +129,8 @@ def check_execution(execution: ExecutionConfig, executor: ExecutorConfig) -> Non
     g = execution.threshold
     if g != AUTO and (isinstance(g, bool) or not isinstance(g, int) or g < 0):
         raise ValueError(f"execution.threshold must be 'auto' or a number of actions >= 0, got {g!r}")
-    if execution.seam not in ("switch", "blend"):
-        raise ValueError(f"execution.seam must be 'switch' or 'blend', got {execution.seam!r}")
+    if execution.seam not in ("align", "switch", "blend"):
+        raise ValueError(f"execution.seam must be 'align', 'switch' or 'blend', got {execution.seam!r}")
     if execution.blend_steps < 1:
         raise ValueError(f"execution.blend_steps must be >= 1, got {execution.blend_steps}")
     if executor.kind == "aurd" and executor.check != "before":
@@ -214,6 +223,9 @@ class AsyncExecutor(BaseExecutor):
         self._settings: Any = None
         self.stale = self.out_of_order = 0
         self._row: dict[str, Any] = {}
+        self._moved: list[np.ndarray] = []  # seam="align": the end-effector motion commanded at each step so far
+        self._deltas = True  # the policy acts in end-effector deltas (read at the first step)
+        self._align = np.zeros((0, 6), np.float32)
 
     def _setup(self, policy: ChunkPolicy) -> Any:
         return self.inner._thresholds(policy) if self.cfg.kind == "adahorizon" else ()
@@ -226,6 +238,7 @@ class AsyncExecutor(BaseExecutor):
     def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
         if self._settings is None:
             self._settings = self._setup(policy)
+            self._deltas = policy.spec.action_space.kind is ActionKind.EE_DELTA
         t, self._row = self.t, {}
         self._receive(t)
         self._take_over(t)
@@ -301,11 +314,29 @@ class AsyncExecutor(BaseExecutor):
             self.plans.append((old.k, ended))
             if self.execution.seam == "blend":
                 self._blend = old.plan.actions[old.step:old.stop][: self.execution.blend_steps]
+        if self.execution.seam == "align" and self._deltas:
+            self._align = self._realign(plan, start)
         stop, event = self._horizon(plan, start)
         self._chunk = _Chunk(plan, query.id, query.sent, start, stop, event, self._commits())
         self._row.update(replanned=True, ended=ended, offset=start)
         if query.cut:
             self._row.update(ended_u=query.cut.u, ended_v=query.cut.v)
+
+    def _emit(self, action: np.ndarray, **row: Any) -> np.ndarray:
+        if self.execution.seam == "align" and self._deltas:
+            self._moved = [*self._moved[-MAX_SKIPPED:], np.asarray(action[MOTION], np.float32)]
+        return super()._emit(action, **row)
+
+    def _realign(self, plan: Plan, start: int) -> np.ndarray:
+        """seam="align": per executed step of the new chunk's first blend_steps, its share of the motion the chunk
+        planned for the ``start`` steps it skipped minus the motion commanded over those steps (end-effector
+        deltas add up to the path, so the arm ends up where the chunk planned to be after them)."""
+        if start == 0:
+            return np.zeros((0, 6), np.float32)
+        executed = np.sum(self._moved[-start:], axis=0) if self._moved else np.zeros(6, np.float32)
+        missing = plan.actions[:start, MOTION].sum(0) - executed
+        b = self.execution.blend_steps
+        return np.repeat((missing / b)[None].astype(np.float32), b, axis=0)
 
     def _commits(self) -> bool:
         """Whether the chunk taking over now runs unchecked (AURD's commit after a cut)."""
@@ -341,6 +372,8 @@ class AsyncExecutor(BaseExecutor):
         if c.k < len(self._blend):
             w = (c.k + 1) / (self.execution.blend_steps + 1)
             action[MOTION] = (1 - w) * self._blend[c.k][MOTION] + w * action[MOTION]
+        if c.k < len(self._align):
+            action[MOTION] += self._align[c.k]
         c.k += 1
         if c.k >= len(self._blend):
             self._blend = self._blend[:0]
@@ -384,6 +417,7 @@ class AsyncAURDExecutor(AsyncExecutor):
            (at zero latency at once: back to 2); its untrusted steps execute meanwhile, within its horizon."""
         if self._settings is None:
             self._settings = self._setup(policy)
+            self._deltas = policy.spec.action_space.kind is ActionKind.EE_DELTA
         t, self._row = self.t, {}
         self._receive(t)
         if self._chunk is None and self._pending is None and self._ready is None:
