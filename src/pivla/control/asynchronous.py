@@ -51,7 +51,7 @@ its first action, and the loop waits for the episode's first answer instead (the
 ACT ensembling asynchronously: a query whenever none is in flight; each step averages every arrived chunk's
 prediction for that step (chunks indexed from the step they were sent), or holds when none reaches it.
 
-Why one ~650-line module: the async fixed horizon, async AURD and the runner share the link's arrival
+Why one ~700-line module: the async fixed horizon, async AURD and the runner share the link's arrival
 bookkeeping (pending, ready, stale and out-of-order chunks), which a split would pass across modules.
 """
 
