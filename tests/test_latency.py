@@ -131,7 +131,7 @@ def test_async_blend_mixes_the_old_chunks_actions_into_the_seam():
 
 def test_async_align_makes_up_the_motion_the_new_chunk_planned_for_the_skipped_steps():
     switch = episode("fixed", AsyncConfig(threshold=2, seam="switch"), "200", horizon=3, steps=8)
-    align = episode("fixed", AsyncConfig(threshold=2), "200", horizon=3, steps=8)  # align over 2 steps: the default
+    align = episode("fixed", AsyncConfig(threshold=2, seam="align"), "200", horizon=3, steps=8)  # over 2 steps
     a, b = align.actions[:, :2], switch.actions[:, :2]  # chunk c's motion at its step k is (c, k)
     # chunk 1 (sent at t=0) starts at t=2 at its step 2; the arm held over t=0, 1, where it planned (1, 0) + (1, 1)
     assert np.allclose(a[2:4], b[2:4] + (np.array([1, 0]) + np.array([1, 1])) / 2)

@@ -17,10 +17,10 @@ A chunk's executor horizon counts from the first action it executes (fixed: ``ho
 choice on the chunk's remaining U_act; AURD: H) and is never exceeded: a plan that runs out before the next
 chunk arrives holds pose (an idle step), so a lost link stops the arm instead of running the old chunk on.
 
-The seam (``seam``): ``align`` (the default) executes the new chunk's due action at once and, for end-effector
-deltas, adds to its first ``blend_steps`` actions equal shares of the motion it planned for the skipped steps
-minus the motion commanded over them (joint targets need nothing, they are the chunk's path; actions of unknown
-kind are left as they are); ``switch`` executes the due action as it is; ``blend`` mixes its first
+The seam (``seam``): ``switch`` (the default) executes the new chunk's due action at once; ``align`` does too and,
+for end-effector deltas, adds to its first ``blend_steps`` actions equal shares of the motion it planned for the
+skipped steps minus the motion commanded over them (joint targets need nothing, they are the chunk's path;
+actions of unknown kind are left as they are); ``blend`` mixes its first
 ``blend_steps`` actions linearly with what the old chunk still had for those steps (old weight (b - i) / (b + 1)
 at the i-th step after the seam, i = 0..b-1; the gripper always the new chunk's), as far as the old chunk's
 horizon reaches.
@@ -108,12 +108,12 @@ class AsyncConfig:
     in actions); auto: the expected delay in control steps (the latency's mean at the control rate; measured
     round trips with --latency-ms real), so that at 0 ms async is sync and the new chunk lands as the old one
     runs out. AURD also sends when its test cuts the plan."""
-    seam: Literal["align", "switch", "blend"] = "align"
-    """How a new chunk takes over: align (its due action at once, and with end-effector deltas its first
-    blend_steps actions also make up the difference between the motion it planned for the steps it skipped and
-    the motion executed meanwhile, so the arm follows the path the chunk planned from its observation; joint
-    targets already are that path), switch (its due action at once), or blend (its first blend_steps actions
-    mixed linearly with the old chunk's)."""
+    seam: Literal["switch", "align", "blend"] = "switch"
+    """How a new chunk takes over: switch (its due action at once); align (the same, and with end-effector deltas
+    its first blend_steps actions also make up the difference between the motion it planned for the steps it
+    skipped and the motion commanded meanwhile, so an arm whose deltas add up to its path follows the path the
+    chunk planned from its observation: the twin, not LIBERO's controller; docs/latency.md); or blend (its first
+    blend_steps actions mixed linearly with the old chunk's)."""
     blend_steps: int = 2
     """blend: steps over which the old chunk's weight falls linearly to 0; align: steps the difference is spread
     over."""

@@ -86,7 +86,8 @@ class DemoConfig:
     """Episodes per task and level."""
     latency_ms: str | None = "200"
     """The latency cell (docs/latency.md): the fixed horizon in distribution with the policy answering this late,
-    synchronously and asynchronously (the auto threshold and the align seam, the defaults); None: no cell."""
+    synchronously and asynchronously (the auto threshold and the align seam, which keeps the twin's success at
+    200 ms); None: no cell."""
     workers: int = 2
     """Worker processes for collection and evaluation."""
     dispatch: Annotated[BackendConfig, tyro.conf.arg(name="")] = dataclasses.field(default_factory=BackendConfig)
@@ -126,7 +127,7 @@ def plans(cfg: DemoConfig) -> list[EvaluationPlan]:
            EvaluationPlan.of([ev(conditions.distraction_level(lv), e) for lv in cfg.levels
                               for e in cfg.level_executors], episodes=cfg.level_episodes)]
     if cfg.latency_ms is not None:
-        for mode in (SyncConfig(), AsyncConfig()):
+        for mode in (SyncConfig(), AsyncConfig(seam="align")):
             cell = dataclasses.replace(conditions.IN_DISTRIBUTION, name=f"latency_{cfg.latency_ms}ms_{mode.kind}")
             out.append(EvaluationPlan.of([ev(cell, "fixed")], episodes=cfg.test_episodes, execution=mode,
                                          latency_ms=cfg.latency_ms))
