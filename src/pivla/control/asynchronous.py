@@ -58,6 +58,7 @@ bookkeeping (pending, ready, stale and out-of-order chunks), which a split would
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any, ClassVar, Literal
@@ -83,7 +84,6 @@ from pivla.control.math import (
 from pivla.data.action_space import ActionKind
 
 MOTION = slice(0, 6)  # the end-effector dims of an action: blended at seams and differenced for jerk
-MAX_SKIPPED = 64  # seam="align": steps of commanded motion remembered (a chunk that skips more is stale anyway)
 
 
 @dataclass
@@ -223,12 +223,19 @@ class AsyncExecutor(BaseExecutor):
         self._settings: Any = None
         self.stale = self.out_of_order = 0
         self._row: dict[str, Any] = {}
-        self._moved: list[np.ndarray] = []  # seam="align": the end-effector motion commanded at each step so far
-        self._deltas = True  # the policy acts in end-effector deltas (read at the first step)
+        # seam="align" on end-effector deltas: the motion commanded over the last K steps (set at the first step;
+        # a chunk that skips K actions or more is stale)
+        self._moved: deque[np.ndarray] | None = None
         self._align = np.zeros((0, 6), np.float32)
 
     def _setup(self, policy: ChunkPolicy) -> Any:
         return self.inner._thresholds(policy) if self.cfg.kind == "adahorizon" else ()
+
+    def _start_episode(self, policy: ChunkPolicy) -> None:
+        """At an episode's first step: the executor's settings, and the motion record the align seam needs."""
+        self._settings = self._setup(policy)
+        if self.execution.seam == "align" and policy.spec.action_space.kind is ActionKind.EE_DELTA:
+            self._moved = deque(maxlen=policy.spec.chunk)
 
     def threshold(self) -> int:
         """Actions left in the current plan when the next query goes out (``auto``: the link's expected delay)."""
@@ -237,8 +244,7 @@ class AsyncExecutor(BaseExecutor):
 
     def act(self, policy: ChunkPolicy, obs: dict) -> np.ndarray:
         if self._settings is None:
-            self._settings = self._setup(policy)
-            self._deltas = policy.spec.action_space.kind is ActionKind.EE_DELTA
+            self._start_episode(policy)
         t, self._row = self.t, {}
         self._receive(t)
         self._take_over(t)
@@ -314,7 +320,7 @@ class AsyncExecutor(BaseExecutor):
             self.plans.append((old.k, ended))
             if self.execution.seam == "blend":
                 self._blend = old.plan.actions[old.step:old.stop][: self.execution.blend_steps]
-        if self.execution.seam == "align" and self._deltas:
+        if self._moved is not None:
             self._align = self._realign(plan, start)
         stop, event = self._horizon(plan, start)
         self._chunk = _Chunk(plan, query.id, query.sent, start, stop, event, self._commits())
@@ -323,8 +329,8 @@ class AsyncExecutor(BaseExecutor):
             self._row.update(ended_u=query.cut.u, ended_v=query.cut.v)
 
     def _emit(self, action: np.ndarray, **row: Any) -> np.ndarray:
-        if self.execution.seam == "align" and self._deltas:
-            self._moved = [*self._moved[-MAX_SKIPPED:], np.asarray(action[MOTION], np.float32)]
+        if self._moved is not None:
+            self._moved.append(np.asarray(action[MOTION], np.float32))
         return super()._emit(action, **row)
 
     def _realign(self, plan: Plan, start: int) -> np.ndarray:
@@ -333,7 +339,7 @@ class AsyncExecutor(BaseExecutor):
         deltas add up to the path, so the arm ends up where the chunk planned to be after them)."""
         if start == 0:
             return np.zeros((0, 6), np.float32)
-        executed = np.sum(self._moved[-start:], axis=0) if self._moved else np.zeros(6, np.float32)
+        executed = np.sum(list(self._moved)[-start:], axis=0) if self._moved else np.zeros(6, np.float32)
         missing = plan.actions[:start, MOTION].sum(0) - executed
         b = self.execution.blend_steps
         return np.repeat((missing / b)[None].astype(np.float32), b, axis=0)
@@ -416,8 +422,7 @@ class AsyncAURDExecutor(AsyncExecutor):
            query in flight, or a new one from this observation, will replace the rest of the plan on arrival
            (at zero latency at once: back to 2); its untrusted steps execute meanwhile, within its horizon."""
         if self._settings is None:
-            self._settings = self._setup(policy)
-            self._deltas = policy.spec.action_space.kind is ActionKind.EE_DELTA
+            self._start_episode(policy)
         t, self._row = self.t, {}
         self._receive(t)
         if self._chunk is None and self._pending is None and self._ready is None:
