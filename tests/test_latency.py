@@ -96,7 +96,7 @@ def test_sync_latency_holds_pose_then_starts_the_chunk_at_its_first_action():
 
 
 def test_async_skips_the_actions_that_passed_and_sends_at_the_threshold():
-    r = episode("fixed", AsyncConfig(threshold=2, seam="switch"), "200", horizon=3)
+    r = episode("fixed", AsyncConfig(threshold=2), "200", horizon=3)
     # sent at t=0, usable at t=2: plan steps 2-4; the next sent at t=3 (2 left) arrives as the plan completes
     assert played(r) == [".", ".", (1, 2), (1, 3), (1, 4), (2, 2), (2, 3), (2, 4), (3, 2), (3, 3), (3, 4),
                          (4, 2), (4, 3), (4, 4)]
@@ -115,7 +115,7 @@ def test_async_at_zero_latency_and_threshold_0_plays_the_sync_episode(name):
 
 
 def test_async_blend_mixes_the_old_chunks_actions_into_the_seam():
-    switch = episode("fixed", AsyncConfig(threshold=4, seam="switch"), "100", horizon=5, steps=6)
+    switch = episode("fixed", AsyncConfig(threshold=4), "100", horizon=5, steps=6)
     blend = episode("fixed", AsyncConfig(threshold=4, seam="blend", blend_steps=2), "100", horizon=5, steps=6)
     # chunk 1 starts at t=1 (plan steps 1-5); with 4 left at t=2 chunk 2 is sent, and takes over at t=3 at its step 1
     assert played(switch) == [".", (1, 1), (1, 2), (2, 1), (2, 2), (3, 1)]
@@ -149,7 +149,7 @@ def test_async_align_makes_up_the_motion_the_new_chunk_planned_for_the_skipped_s
 def test_async_aurd_sends_on_a_cut_and_drops_the_rest_when_the_chunk_arrives():
     # the observation at t=2 deviates from chunk 1's prediction (U = 0.6 > tau_high): a query goes out at t=2
     # and its chunk replaces chunk 1 the moment it arrives; a chunk sent on the threshold waits for the plan
-    r = episode("aurd", AsyncConfig(threshold=3, seam="switch"), "100", policy=ScriptedPolicy(latent_error={2: 2.0}))
+    r = episode("aurd", AsyncConfig(threshold=3), "100", policy=ScriptedPolicy(latent_error={2: 2.0}))
     assert played(r) == [".", (1, 1), (1, 2), (2, 1), (2, 2), (2, 3), (2, 4), (2, 5), (3, 3), (3, 4), (3, 5),
                          (3, 6), (3, 7), (4, 3)]
     assert r.plans[0] == (2, "replan") and r.plans[1] == (5, "complete")
@@ -199,7 +199,7 @@ def test_async_aurd_with_a_fixed_threshold_at_zero_latency_waits_for_the_plan():
     # threshold 2 at 0 ms: the answer sent with 2 actions left is here at once but waits until the plan has run its
     # horizon, then starts 2 actions in (a chunk from an observation 2 steps old); its first step is tested on
     # U_act alone, as the synchronous AURD's step 0 (its own actions have had no outcome yet)
-    r = episode("aurd", AsyncConfig(threshold=2, seam="switch"), "0", steps=12)
+    r = episode("aurd", AsyncConfig(threshold=2), "0", steps=12)
     assert played(r) == [(1, 0), (1, 1), (1, 2), (1, 3), (1, 4), (2, 2), (2, 3), (2, 4), (2, 5), (2, 6), (3, 2),
                          (3, 3)]
     assert r.plans == [(5, "complete"), (5, "complete")] and r.trace[5]["u_pred"] == 0.0
@@ -209,7 +209,7 @@ def test_the_auto_threshold_sends_so_that_the_chunk_lands_as_the_plan_runs_out()
     # d steps of delay: the threshold is d, so a query goes out when d actions remain (t = 5, 10, ... with H = 5)
     # and lands as the plan runs out; the arm idles only while the first chunk is in flight
     for ms, d in (("0", 0), ("100", 1), ("200", 2), ("300", 3), ("200:60", 2)):
-        r = episode("fixed", AsyncConfig(threshold="auto", seam="switch"), ms, horizon=5, steps=30, seed=4)
+        r = episode("fixed", AsyncConfig(threshold="auto"), ms, horizon=5, steps=30, seed=4)
         sent = [row["t"] for row in r.trace if "sent" in row]
         offsets = [row["offset"] for row in r.trace if row.get("replanned")]
         if ":" in ms:  # jitter: the threshold is the mean's 2 steps; a late answer costs idle steps, an early one
@@ -248,8 +248,7 @@ def test_async_aurd_at_latency_cuts_a_late_chunks_untrusted_first_step_instead_o
     # every chunk's first executed step is untrusted on U_act; at 100 ms a chunk is one step late, so it answers
     # an older observation: AURD sends a query from this one at once (no pause: the answer can differ)
     u_act = [1.0] * 8
-    switch = AsyncConfig(threshold="auto", seam="switch")
-    r = episode("aurd", switch, "100", policy=ScriptedPolicy(u_act=u_act), steps=10)
+    r = episode("aurd", AsyncConfig(threshold="auto"), "100", policy=ScriptedPolicy(u_act=u_act), steps=10)
     cut = next(row for row in r.trace if row.get("cut"))
     assert cut["t"] == 1 and cut["sent"] == "replan" and cut["plan_step"] == 1 and cut.get("event") is None
     assert r.summary()["pauses"] == 0 and r.trace[2]["ended"] == "replan" and r.trace[2]["committed"]
@@ -260,8 +259,7 @@ def test_async_aurd_at_latency_cuts_a_late_chunks_untrusted_first_step_instead_o
 def test_trace_events_are_the_strings_on_disk():
     from pivla.control.math import Event
 
-    switch = AsyncConfig(threshold="auto", seam="switch")
-    r = episode("aurd", switch, "100", policy=ScriptedPolicy(latent_error={2: 2.0}))
+    r = episode("aurd", AsyncConfig(threshold="auto"), "100", policy=ScriptedPolicy(latent_error={2: 2.0}))
     text = json.dumps(r.trace)
     assert '"cut": "replan"' in text and '"sent": "threshold"' in text and '"ended": "replan"' in text
     assert all(type(v) is str for row in r.trace for k, v in row.items() if k in ("cut", "sent", "ended", "event")
@@ -271,7 +269,7 @@ def test_trace_events_are_the_strings_on_disk():
 
 # -- faults ---------------------------------------------------------------------------------------------------
 def test_a_chunk_that_arrives_past_all_its_actions_is_dropped_and_counted():
-    r = episode("fixed", AsyncConfig(threshold=2, seam="switch"), "800", horizon=3, steps=20)  # 8 steps late, K = 8
+    r = episode("fixed", AsyncConfig(threshold=2), "800", horizon=3, steps=20)  # 8 steps late, K = 8
     assert played(r) == ["."] * 20
     assert r.summary()["stale_chunks"] == 2 and r.summary()["idle_steps"] == 20
 
@@ -296,7 +294,7 @@ def test_an_answer_for_another_observation_is_never_executed():
 
     for name in ("fixed", "ensemble"):
         ex = make_async_executor(executor_config(name, **({"horizon": 3} if name == "fixed" else {})),
-                                 AsyncConfig(threshold=2, seam="switch"))
+                                 AsyncConfig(threshold=2))
         ex.reset()
         policy = ScriptedPolicy()
         ex.link = MisdeliveringLink(policy, Latency(100.0), 10, seed=0)
@@ -321,7 +319,7 @@ class LinkLostAfter(ScriptedPolicy):
 @pytest.mark.parametrize("name", ["fixed", "aurd", "ensemble"])
 def test_a_lost_link_makes_the_arm_hold_within_the_chunks_horizon(name):
     options = {"horizon": 3} if name == "fixed" else {}
-    r = episode(name, AsyncConfig(threshold=2, seam="switch"), "100", policy=LinkLostAfter(1), **options)
+    r = episode(name, AsyncConfig(threshold=2), "100", policy=LinkLostAfter(1), **options)
     horizon = {"fixed": 3, "aurd": 5, "ensemble": 7}[name]  # ensemble: the chunk's K = 8 less the step it came late
     moving = [t for t, a in enumerate(played(r)) if a != "."]
     assert moving == list(range(1, 1 + horizon)), played(r)
