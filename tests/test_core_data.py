@@ -14,6 +14,8 @@ from pivla.data.samples import (
     prepare_episode,
     prepare_episodes,
     split_episodes,
+    task_balanced_weights,
+    weighted_batch_indices,
 )
 from pivla.data.synthetic import synthetic_episode
 from pivla.data.text import WordTokenizer
@@ -101,6 +103,23 @@ def test_split_is_episode_level_and_stratified():
     train, val = split_episodes(eps, 0.2, seed=0)
     assert set(train).isdisjoint(val) and sorted(train + val) == list(range(10))
     assert {eps[i].instruction for i in val} == {"move the square left", "move the square right"}
+
+
+def test_task_balance_draws_tasks_equally_and_batches_are_a_function_of_the_step():
+    tasks, lengths = ["a", "a", "a", "b"], [30, 30, 30, 10]  # task a has 90 frames, b 10
+    share_b = lambda w: w[90:].sum()  # noqa: E731
+    assert np.allclose(task_balanced_weights(tasks, lengths, 0.0), 1 / 100)
+    assert share_b(task_balanced_weights(tasks, lengths, 1.0)) == pytest.approx(0.5)
+    assert share_b(task_balanced_weights(tasks, lengths, 0.5)) == pytest.approx(1 / (1 + 3))  # 10**.5 / (.. + 90**.5)
+    cdf = np.cumsum(task_balanced_weights(tasks, lengths, 1.0))
+    drawn = np.concatenate([weighted_batch_indices(cdf, 32, step, seed=0) for step in range(200)])
+    assert drawn.min() >= 0 and drawn.max() < 100
+    assert np.mean(drawn >= 90) == pytest.approx(0.5, abs=0.03)
+    batch = lambda step: weighted_batch_indices(cdf, 32, step, seed=0)  # noqa: E731
+    np.testing.assert_array_equal(batch(7), batch(7))  # a resumed run draws the same batch
+    assert not np.array_equal(batch(7), batch(8))
+    with pytest.raises(ValueError, match="task balance"):
+        task_balanced_weights(tasks, lengths, 1.5)
 
 
 def test_chunk_targets_padding_mask_and_next_obs():

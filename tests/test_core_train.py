@@ -145,6 +145,23 @@ def test_extra_data_follows_the_data_in_one_split(tmp_path, synthetic_data):
         assert prepared.imitate == ep.success
 
 
+def test_task_balance_draws_a_short_task_as_often_as_a_long_one(tmp_path):
+    from pivla.data.hdf5 import write_episodes
+    from pivla.data.samples import weighted_batch_indices
+    from pivla.data.synthetic import synthetic_episode
+
+    rng = np.random.default_rng(0)
+    write_episodes(tmp_path / "d" / "left.hdf5", [synthetic_episode(rng, "left", T=20, size=32) for _ in range(4)])
+    write_episodes(tmp_path / "d" / "right.hdf5", [synthetic_episode(rng, "right", T=10, size=32)])
+    uniform = Trainer(tiny_train_config(tmp_path / "d", tmp_path / "u", val_fraction=0.0))
+    assert uniform.train_cdf is None  # the default keeps the epoch-wise permutations
+    t = Trainer(tiny_train_config(tmp_path / "d", tmp_path / "b", val_fraction=0.0, task_balance=1.0))
+    episode = t.train_set.index[:, 0]
+    drawn = np.concatenate([weighted_batch_indices(t.train_cdf, 8, s, t.cfg.seed) for s in range(400)])
+    assert np.mean(episode[drawn] == 4) == pytest.approx(0.5, abs=0.05)  # 10 of the 90 frames, half the draws
+    t.train_step()  # a step trains on the weighted batch
+
+
 def test_bad_observations_and_corrupt_model_get_named_errors(tmp_path, synthetic_data):
     run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, ckpt_every=2, eval_every=2))
     policy = load_policy(run, device="cpu")

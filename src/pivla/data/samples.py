@@ -305,6 +305,28 @@ def epoch_batch_indices(n: int, batch: int, step: int, seed: int, rank: int = 0,
     return out
 
 
+def task_balanced_weights(tasks: Sequence[str], lengths: Sequence[int], balance: float) -> np.ndarray:
+    """Sampling probability of every frame, episode by episode: proportional to ``n ** -balance``, n the frames of
+    its episode's task. 0 draws frames uniformly (a task's share is its share of the frames); 1 draws every
+    task equally often, so a task with short demonstrations is not drowned by the others in a multi-task
+    policy (docs/experiments.md#equal-task-sampling)."""
+    if not 0.0 <= balance <= 1.0:
+        raise ValueError(f"task balance must be in [0, 1], got {balance}")
+    frames: dict[str, int] = {}
+    for task, n in zip(tasks, lengths, strict=True):
+        frames[task] = frames.get(task, 0) + n
+    w = np.concatenate([np.full(n, float(frames[task]) ** -balance) for task, n in zip(tasks, lengths)])
+    return w / w.sum()
+
+
+def weighted_batch_indices(cdf: np.ndarray, batch: int, step: int, seed: int, rank: int = 0) -> np.ndarray:
+    """Indices of the batch a rank sees at ``step``, drawn with replacement from the distribution whose cumulative
+    sum is ``cdf``, by a generator seeded by (seed, step, rank): a pure function of the step, as the epoch-wise
+    permutations are."""
+    u = np.random.default_rng([seed, step, rank, 1]).random(batch) * cdf[-1]
+    return np.minimum(np.searchsorted(cdf, u, side="right"), len(cdf) - 1)
+
+
 @functools.lru_cache(maxsize=4)
 def _permutation(n: int, seed: int, epoch: int) -> np.ndarray:
     return np.random.default_rng([seed, epoch]).permutation(n)

@@ -83,6 +83,10 @@ class TrainConfig:
     """Gradient-norm clip."""
     seed: int = 0
     """Seed of initialisation, batches, augmentation and the validation split."""
+    task_balance: float = 0.0
+    """How evenly the tasks (told apart by instruction) are drawn: 0, every frame equally often; 1, every task
+    equally often, whatever the length and number of its demonstrations; between, a frame's weight is its task's
+    frame count to the power -task_balance (docs/experiments.md#equal-task-sampling)."""
     val_fraction: float = 0.05
     """Share of episodes held out for validation loss (per task, whole episodes)."""
     augment_pad: int = 4

@@ -48,6 +48,8 @@ from pivla.data.samples import (
     prepare_episodes,
     resolve_inputs,
     split_episodes,
+    task_balanced_weights,
+    weighted_batch_indices,
 )
 from pivla.data.text import build_text_tokenizer, load_text_tokenizer
 from pivla.data.transforms import batch_to_tensors
@@ -192,6 +194,9 @@ class Trainer:
         prepared = prepare_episodes(training_episodes(cfg, keys), lengths, cfg.model, self.stats, self.text, store)
         self.train_set = ChunkDataset([prepared[i] for i in train_idx], cfg.model, cfg.loss.sp_steps)
         self.val_set = ChunkDataset([prepared[i] for i in val_idx], cfg.model, cfg.loss.sp_steps) if val_idx else None
+        # frames drawn by task weight (None: the epoch-wise permutations, every frame once per epoch)
+        self.train_cdf = None if cfg.task_balance == 0 else np.cumsum(task_balanced_weights(
+            [ep.instruction for ep in train_eps], [len(ep.actions) for ep in train_eps], cfg.task_balance))
         self.split = {"train_episodes": [int(i) for i in train_idx], "val_episodes": [int(i) for i in val_idx]}
         self.model = CMSModel(cfg.model, len(self.text.vocab)).to(self.device)
         self.fsdp = self.acc.distributed_type == DistributedType.FSDP
@@ -286,7 +291,10 @@ class Trainer:
     def _batch(self, dataset: ChunkDataset, step: int, rank: int, world: int, augment: bool,
                seed_offset: int = 0) -> dict[str, torch.Tensor]:
         cfg = self.cfg
-        idx = epoch_batch_indices(len(dataset), cfg.batch_size, step, cfg.seed + seed_offset, rank, world)
+        if dataset is self.train_set and self.train_cdf is not None:
+            idx = weighted_batch_indices(self.train_cdf, cfg.batch_size, step, cfg.seed, rank)
+        else:
+            idx = epoch_batch_indices(len(dataset), cfg.batch_size, step, cfg.seed + seed_offset, rank, world)
         rng = np.random.default_rng([cfg.seed + seed_offset, step, rank])
         batch = collate([dataset.sample(int(i), rng) for i in idx])
         if augment:

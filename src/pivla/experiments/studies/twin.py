@@ -165,7 +165,8 @@ class Benchmark:
         dirs = [str(layout.data(d, first=recipe.demos)) for d in recipe.data]
         if recipe.rollouts:
             dirs += [str(layout.train_rollouts(seed, c.name)) for c in ROLLOUT_CELLS]
-        return dataclasses.replace(tc, data=dirs[0], extra_data=tuple(dirs[1:]), val_fraction=cfg.val_fraction)
+        return dataclasses.replace(tc, data=dirs[0], extra_data=tuple(dirs[1:]), val_fraction=cfg.val_fraction,
+                                   task_balance=recipe.task_balance)
 
     def _ready(self, *names: str) -> None:
         """Collect, then train every seed of these policies (each a Ray task, all at once, with --backend ray),

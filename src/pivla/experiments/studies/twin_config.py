@@ -109,7 +109,9 @@ def recipes(cfg: BenchmarkConfig) -> dict[str, Recipe]:
     (``demos_<n>``)."""
     out = [Recipe("main", Kind.HEADLINE), Recipe("round2", Kind.FAILURE_ROUND),
            Recipe("seen", Kind.SEEN_TASKS, ("pick_place_seen",), ("pick_place_seen",)),
-           Recipe("others", Kind.OTHER_SUITES, OTHER_SUITES, OTHER_SUITES)]
+           # the drawer's demonstrations are a fifth of the three suites' frames: drawn as often as the others'
+           # tasks, it is learnt (docs/experiments.md#equal-task-sampling)
+           Recipe("others", Kind.OTHER_SUITES, OTHER_SUITES, OTHER_SUITES, task_balance=1.0)]
     out += [Recipe(f"abl_{v}", Kind.ABLATION, variant=v) for v in TRAIN_VARIANTS if v != "full"]
     out += [Recipe(f"demos_{n}", Kind.DEMO_COUNT, demos=n) for n in cfg.demo_counts]
     return {r.name: r for r in out}
