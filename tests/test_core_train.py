@@ -160,6 +160,8 @@ def test_task_balance_draws_a_short_task_as_often_as_a_long_one(tmp_path):
     drawn = np.concatenate([weighted_batch_indices(t.train_cdf, 8, s, t.cfg.seed) for s in range(400)])
     assert np.mean(episode[drawn] == 4) == pytest.approx(0.5, abs=0.05)  # 10 of the 90 frames, half the draws
     t.train_step()  # a step trains on the weighted batch
+    with pytest.raises(ValueError, match="task balance"):  # refused before any picture is loaded
+        Trainer(tiny_train_config(tmp_path / "d", tmp_path / "bad", val_fraction=0.0, task_balance=1.5))
 
 
 def test_bad_observations_and_corrupt_model_get_named_errors(tmp_path, synthetic_data):

@@ -184,6 +184,10 @@ class Trainer:
             self.stats = fit_norm_stats(train_eps, cfg.model, layout.action_space)
             self.text = build_text_tokenizer(cfg.model.backbone.name, [ep.instruction for ep in train_eps],
                                              cfg.model.max_text_len, cfg.model.backbone.path)
+        # frames drawn by task weight (None: the epoch-wise permutations, every frame once per epoch); computed
+        # before any picture is loaded, so a bad --task-balance is refused at once
+        self.train_cdf = None if cfg.task_balance == 0 else np.cumsum(task_balanced_weights(
+            [ep.instruction for ep in train_eps], [len(ep.actions) for ep in train_eps], cfg.task_balance))
         lengths = [len(ep.actions) for ep in episodes]
         local = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))  # processes on this machine (torchrun, accelerate launch)
         on_disk = images_on_disk(cfg, sum(lengths), local)
@@ -194,9 +198,6 @@ class Trainer:
         prepared = prepare_episodes(training_episodes(cfg, keys), lengths, cfg.model, self.stats, self.text, store)
         self.train_set = ChunkDataset([prepared[i] for i in train_idx], cfg.model, cfg.loss.sp_steps)
         self.val_set = ChunkDataset([prepared[i] for i in val_idx], cfg.model, cfg.loss.sp_steps) if val_idx else None
-        # frames drawn by task weight (None: the epoch-wise permutations, every frame once per epoch)
-        self.train_cdf = None if cfg.task_balance == 0 else np.cumsum(task_balanced_weights(
-            [ep.instruction for ep in train_eps], [len(ep.actions) for ep in train_eps], cfg.task_balance))
         self.split = {"train_episodes": [int(i) for i in train_idx], "val_episodes": [int(i) for i in val_idx]}
         self.model = CMSModel(cfg.model, len(self.text.vocab)).to(self.device)
         self.fsdp = self.acc.distributed_type == DistributedType.FSDP
