@@ -26,6 +26,7 @@ def test_bench_train_json_for_both_token_layouts_and_the_libero_preset(capsys):
         assert main(["bench", "train", "--steps", "4", "--batch-size", "2", "--threads", "1", "--json", *extra]) == 0
         out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         assert out["grid_tokens"] is ("--grid-tokens" in extra) and out["samples_per_s"] > 0
+        assert out["value_refresh_ms_per_frame"] > 0
         assert (out["image_size"], out["cameras"]) == ((128, 2) if "--preset" in extra else (80, 2))
         assert out["loss"]["use_sp"] is (extra != il_only)
 

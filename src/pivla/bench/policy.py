@@ -122,8 +122,12 @@ def run_train_bench(cfg: TrainBenchConfig) -> dict:
             t = time.perf_counter()
             trainer.train_step()
             times.append(time.perf_counter() - t)
+        t = time.perf_counter()  # the GAE refresh, timed warm: a pass of V over every training frame
+        trainer._state_values(trainer.train_set)
+        refresh_ms = (time.perf_counter() - t) * 1e3 / sum(len(ep.actions) for ep in trainer.train_set.episodes)
     med = float(np.median(times[3:]))
     return {"train_step_s_median": round(med, 4), "samples_per_s": round(cfg.batch_size / med, 1),
+            "value_refresh_ms_per_frame": round(refresh_ms, 3),
             "batch_size": cfg.batch_size, "threads": cfg.threads, "grid_tokens": cfg.grid_tokens,
             "preset": cfg.preset, "image_size": tc.model.image_size, "cameras": len(trainer.cfg.model.cameras),
             "mixed_precision": cfg.mixed_precision, "loss": dataclasses.asdict(cfg.loss)}
