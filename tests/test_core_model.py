@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -278,6 +280,25 @@ def test_demo_policy_encodes_its_agent_view_downsampled(tmp_path):
         assert len(target.encoder.res) == len(cfg.backbone.vision_channels)
     with pytest.raises(ValueError, match="image size 90 px is not a multiple"):
         train_config(DemoConfig(image_size=90), tmp_path / "data", tmp_path / "run")
+
+
+def test_the_demo_trains_the_recipe_and_its_cnn_widths_and_refreshes_can_be_set(tmp_path):
+    from pivla.experiments.studies.demo import DemoConfig, train_config
+    from pivla.training.config import TrainConfig, with_twin_inputs
+
+    recipe = TrainConfig()
+    default = train_config(DemoConfig(), tmp_path / "d", tmp_path / "r")
+    assert default.model.backbone == recipe.model.backbone and default.value_refresh_every == 0
+    fast = train_config(DemoConfig(vision_channels=(16, 32, 64, 128), value_refresh_every=2000), tmp_path / "d",
+                        tmp_path / "r")
+    assert fast.value_refresh_every == 2000 and fast.every(fast.value_refresh_every) == 2000
+    assert dataclasses.replace(fast.model.backbone, vision_channels=recipe.model.backbone.vision_channels) \
+        == recipe.model.backbone
+    assert fast.loss == recipe.loss and (fast.lr, fast.steps, fast.batch_size) == (recipe.lr, recipe.steps,
+                                                                                   recipe.batch_size)
+    convs = [m for m in CMSModel(with_twin_inputs(fast.model), vocab_size=12).backbone.vision.net
+             if isinstance(m, torch.nn.Conv2d)]
+    assert [c.out_channels for c in convs] == [16, 32, 64, 128]
 
 
 def test_spatial_softmax_finds_a_peak_where_it_is():

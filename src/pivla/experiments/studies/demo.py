@@ -31,6 +31,7 @@ from pivla.experiments.plan import Evaluation, EvaluationPlan, eval_config
 from pivla.experiments.recipes import recipe_config
 from pivla.experiments.report import write_report
 from pivla.experiments.stages import Calibrate, Collect, Evaluate, Train, perform, validation_rollouts
+from pivla.model.config import BackboneConfig
 from pivla.training.config import TrainConfig, check_target_divides
 
 log = logging.getLogger("pivla.demo")
@@ -45,7 +46,7 @@ POLICY = "policy"  # the demo's one policy
 
 @dataclass
 class DemoConfig:
-    """Sizes of the main job: about 17 min on 2 CPU cores (docs/results.md#demo-wall-time); ``--quick`` is a
+    """Sizes of the main job (its wall time: docs/results.md#demo-wall-time); ``--quick`` is a
     few-minute smoke run that still trains and evaluates for real."""
 
     out: str = "runs/demo"
@@ -67,6 +68,13 @@ class DemoConfig:
     image_size: int = 80
     """Camera and policy resolution: 80 px trains 1.6x faster than 96 at the same success
     (docs/experiments.md#80-px-cameras)."""
+    vision_channels: tuple[int, ...] = BackboneConfig.vision_channels
+    """Widths of the CNN's stages (the recipe's). 16 32 64 128 with --value-refresh-every 2000 took the demo from
+    39.5 to 28.6 min on an AVX2-only 2-core box, and 7 points of test success over every cell
+    (docs/experiments.md#a-narrower-cnn-and-one-value-refresh)."""
+    value_refresh_every: int = TrainConfig.value_refresh_every
+    """Training steps between refreshes of the GAE table, each a pass of V over every training frame (the
+    recipe's: 0, five a run)."""
     noise: float = 0.3
     """DART: noise on executed expert actions, clean labels (recovery data)."""
     miss: float = 0.3
@@ -106,10 +114,12 @@ def quick(base: DemoConfig | None = None) -> DemoConfig:
 def train_config(cfg: DemoConfig, data: Path, run: Path) -> TrainConfig:
     """The recipe at the demo's sizes; an image size the target's downsampling does not divide is refused
     before anything is collected."""
+    base = TrainConfig().model
+    model = dataclasses.replace(base, backbone=dataclasses.replace(base.backbone, vision_channels=cfg.vision_channels))
     tc = recipe_config(str(data), str(run), cfg.seed, steps=cfg.steps, batch_size=cfg.batch_size,
-                       image_size=cfg.image_size)
+                       image_size=cfg.image_size, model=model)
     check_target_divides(tc.model)
-    return tc
+    return dataclasses.replace(tc, value_refresh_every=cfg.value_refresh_every)
 
 
 def plans(cfg: DemoConfig) -> list[EvaluationPlan]:
