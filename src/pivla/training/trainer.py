@@ -308,11 +308,10 @@ class Trainer:
 
     # -- value refresh for the RL term -------------------------------------------------------------------
     @torch.no_grad()
-    @torch.inference_mode()
     def _state_values(self, dataset: ChunkDataset, batch: int = 64) -> list[np.ndarray]:
-        """V(s_t) of every training frame: one pass of the backbone and the value head over the whole dataset,
-        without autograd. Batches of 64 frames: on 2 CPU cores a 256-frame batch's activations leave the cache
-        and cost 1.5x a frame."""
+        """V(s_t) of every training frame: one pass of the backbone and the value head over the whole dataset
+        (the whole forward under FSDP). Batches of 64 frames: on 2 CPU cores a 256-frame
+        batch's activations leave the cache and cost 1.5x a frame."""
         self.model.eval()
         values = []
         for e, ep in enumerate(dataset.episodes):
@@ -321,7 +320,9 @@ class Trainer:
                 ts = range(s, min(s + batch, len(ep.actions)))
                 b = batch_to_tensors(collate([dataset.observation(e, t) for t in ts]), self.device)
                 with self.acc.autocast():
-                    out.append(self.model.state_value(b).float().cpu().numpy())
+                    # FSDP gathers its sharded parameters in the hooks of the model's forward, which it needs
+                    v = self.model(b).value_now if self.fsdp else self.model.state_value(b)
+                    out.append(v.float().cpu().numpy())
             values.append(np.concatenate(out))
         self.model.train()
         return values
