@@ -49,23 +49,6 @@ def test_head_shapes():
     assert m.target(fake_batch()["images"]).shape == (3, m.latent_dim)
 
 
-
-def test_the_value_pass_gives_the_forward_pass_values_without_the_other_heads():
-    torch.manual_seed(0)
-    m = CMSModel(CFG, vocab_size=12).eval()
-    b = fake_batch()
-    with torch.inference_mode():
-        full = m(b).value_now
-        calls = []
-        hooks = [head.register_forward_hook(lambda *_: calls.append(1))
-                 for head in (m.discrete_head, m.continuous_head, m.state_predictor)]
-        alone = m.state_value(b)
-    for h in hooks:
-        h.remove()
-    assert alone.shape == (3,) and calls == []
-    torch.testing.assert_close(alone, full, rtol=0, atol=0)
-
-
 def _grads(model, loss):
     model.zero_grad(set_to_none=True)
     loss.backward()

@@ -263,12 +263,6 @@ class CMSModel(nn.Module):
             h_mot=h_mot,
         )
 
-    def state_value(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """V(s_t) alone, (B,): the backbone and the value head, none of the other heads. The GAE refresh
-        evaluates it on every training frame; the figures equal ``forward(batch).value_now``."""
-        h_cog, _ = self.backbone(batch)
-        return self.value_head(h_cog)[:, 0]
-
     def external_state_keys(self) -> set[str]:
         """State-dict keys of frozen pretrained weights that are rebuilt from a local checkpoint directory
         (``backbone.path``, the DINOv2 path): run checkpoints leave them out, so a 7B run stores only

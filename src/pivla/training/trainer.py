@@ -205,7 +205,7 @@ class Trainer:
             self._configure_fsdp()
         params = [p for p in self.model.parameters() if p.requires_grad]
         # the fused kernel updates all parameters in one pass (3 against 15 ms a step on 2 CPU cores); FSDP's
-        # sharded parameters keep the per-tensor loop
+        # sharded parameters keep the default per-tensor loop, the one its tests cover
         fused = not self.fsdp and self.device.type in ("cpu", "cuda")
         self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=fused)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: lr_lambda(s, cfg))
@@ -309,9 +309,8 @@ class Trainer:
     # -- value refresh for the RL term -------------------------------------------------------------------
     @torch.no_grad()
     def _state_values(self, dataset: ChunkDataset, batch: int = 64) -> list[np.ndarray]:
-        """V(s_t) of every training frame: one pass of the backbone and the value head over the whole dataset
-        (the whole forward under FSDP). Batches of 64 frames: on 2 CPU cores a 256-frame
-        batch's activations leave the cache and cost 1.5x a frame."""
+        """V(s_t) of every training frame: one forward pass over the whole dataset, in batches of 64 frames (on 2
+        CPU cores a 256-frame batch's activations leave the cache and cost 1.5x a frame)."""
         self.model.eval()
         values = []
         for e, ep in enumerate(dataset.episodes):
@@ -320,9 +319,7 @@ class Trainer:
                 ts = range(s, min(s + batch, len(ep.actions)))
                 b = batch_to_tensors(collate([dataset.observation(e, t) for t in ts]), self.device)
                 with self.acc.autocast():
-                    # FSDP gathers its sharded parameters in the hooks of the model's forward, which it needs
-                    v = self.model(b).value_now if self.fsdp else self.model.state_value(b)
-                    out.append(v.float().cpu().numpy())
+                    out.append(self.model(b).value_now.float().cpu().numpy())
             values.append(np.concatenate(out))
         self.model.train()
         return values
