@@ -229,3 +229,52 @@ def test_one_head_policy_executes_its_head_and_has_no_action_uncertainty(tmp_pat
     assert np.allclose(cont["actions_normalized"], cont["continuous_normalized"])
     with pytest.raises(ValueError, match="gripper_head"):
         load_policy(both_run, device="cpu", gripper_head="mode")
+
+
+def test_a_policy_trained_on_actions_in_flight_reads_them_and_names_bad_ones(tmp_path, synthetic_data):
+    """``--model.action-prefix P``: samples carry the first d <= P actions of their target chunk (d drawn per
+    sample, 0 included); the trained policy plans from the actions it is told, an empty prefix is no prefix, and a
+    prefix it cannot read is named."""
+    from pivla.data.samples import ChunkDataset
+    from pivla.training.trainer import Trainer
+
+    cfg = tiny_train_config(synthetic_data, tmp_path / "run", steps=10)
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, action_prefix=3))
+    trainer = Trainer(cfg)
+    dataset: ChunkDataset = trainer.train_set
+    rng = np.random.default_rng(0)
+    samples = [dataset.sample(i, rng) for i in range(0, len(dataset), 3)]
+    told = {int(s["prefix_mask"].sum()) for s in samples}
+    assert told == {0, 1, 2, 3}
+    for s in samples:
+        n = int(s["prefix_mask"].sum())
+        assert s["prefix_mask"][:n].all() and not s["prefix_mask"][n:].any()
+        np.testing.assert_array_equal(s["action_prefix"][:n], s["actions"][:n])
+        assert not s["action_prefix"][n:].any()
+    run = train(cfg)
+    policy = load_policy(run, device="cpu")
+    assert policy.spec.action_prefix == 3
+    plain = policy.infer(_obs())
+    np.testing.assert_array_equal(policy.infer({**_obs(), "action_prefix": np.zeros((0, 7))})["actions"],
+                                  plain["actions"])
+    told = policy.infer({**_obs(), "action_prefix": plain["actions"][:2]})
+    assert not np.allclose(told["continuous_normalized"], plain["continuous_normalized"])
+    for bad, problem in [(np.zeros((4, 7)), "at most 3"), (np.zeros((2, 6)), r"\(n, 7\)"),
+                         (np.full((1, 7), np.nan), "NaN"), ("left", "array of numbers")]:
+        with pytest.raises(ValueError, match=problem):
+            policy.infer({**_obs(), "action_prefix": bad})
+    plain_run = train(tiny_train_config(synthetic_data, tmp_path / "plain", steps=2))
+    with pytest.raises(ValueError, match="not trained to read actions in flight"):
+        load_policy(plain_run, device="cpu").infer({**_obs(), "action_prefix": plain["actions"][:1]})
+
+
+@pytest.mark.parametrize("changes, problem", [
+    ({"action_prefix": 8}, "0 to K - 1 = 7"), ({"action_prefix": 2, "relative_actions": True}, "relative_actions")])
+def test_an_action_prefix_the_model_cannot_read_is_named(changes, problem):
+    from pivla.model.cms import CMSModel
+    from pivla.model.config import BackboneConfig, ModelConfig
+
+    cfg = ModelConfig(image_size=32, backbone=BackboneConfig(d_model=64, n_layers=2, vision_channels=(16, 32, 32, 32)),
+                      **changes)
+    with pytest.raises(ValueError, match=problem):
+        CMSModel(cfg, 10)

@@ -434,3 +434,36 @@ def test_cli_takes_execution_and_latency():
     cfg = tyro.cli(EvalConfig, args=_choice_shorthand(EvalConfig, argv), config=TYRO_CONFIG)
     assert cfg.execution == AsyncConfig(threshold=3, seam="blend") and cfg.executor.horizon == 4
     assert cfg.latency_ms == "200:20"
+
+
+class PrefixPolicy(ScriptedPolicy):
+    """A scripted policy that reads actions in flight and records what each query carried."""
+
+    spec = dataclasses.replace(ScriptedPolicy.spec, action_prefix=3)
+
+    def __init__(self):
+        super().__init__()
+        self.told = []
+
+    def infer(self, obs):
+        prefix = obs.get("action_prefix")
+        self.told.append(None if prefix is None else [(int(a[0]), int(a[1])) for a in prefix])
+        return super().infer(obs)
+
+
+@pytest.mark.parametrize("name", ["fixed", "aurd"])
+def test_async_tells_a_policy_that_reads_them_the_actions_it_executes_while_the_query_is_out(name):
+    policy = PrefixPolicy()
+    options = {"horizon": 3}
+    r = episode(name, AsyncConfig(), "200", policy=policy, **options)
+    # 2 steps in flight (the auto threshold): each query after the first carries the 2 plan steps that execute
+    # before its answer takes over, and that answer starts right after them
+    assert policy.told[0] is None and len(policy.told) == r.queries
+    assert policy.told[1:] == [[(k, 3), (k, 4)] for k in range(1, len(policy.told))]
+    assert played(r)[2:8] == [(1, 2), (1, 3), (1, 4), (2, 2), (2, 3), (2, 4)]
+    quiet = PrefixPolicy()
+    episode(name, AsyncConfig(prefix=False), "200", policy=quiet, **options)
+    assert set(map(str, quiet.told)) == {"None"}
+    synchronous = PrefixPolicy()
+    episode(name, SyncConfig(), "200", policy=synchronous, **options)
+    assert set(map(str, synchronous.told)) == {"None"}

@@ -51,11 +51,12 @@ MAX_BATCH = 4
 TEXT = "pick up the red block"
 
 
-def write_run(run: Path, target_proprio: float = 0.0) -> Path:
+def write_run(run: Path, target_proprio: float = 0.0, action_prefix: int = 0) -> Path:
     """An untrained tiny policy as ``pivla train`` lays out a run (32 px, target encoder downsampled 2x)."""
     model_cfg = ModelConfig(image_size=32,
                             backbone=BackboneConfig(d_model=64, n_layers=2, vision_channels=(16, 32, 32, 32)),
-                            target_encoder=TargetEncoderConfig(downsample=2, proprio=target_proprio))
+                            target_encoder=TargetEncoderConfig(downsample=2, proprio=target_proprio),
+                            action_prefix=action_prefix)
     torch.manual_seed(0)
     text = WordTokenizer.build([TEXT, "put the block in the drawer"], model_cfg.max_text_len)
     model = CMSModel(model_cfg, len(text.vocab))
@@ -463,6 +464,26 @@ def test_a_latent_that_reads_the_proprio(tmp_path):
         np.testing.assert_allclose(remote.encode(observation(3)), local.encode(obs), atol=1e-5)
         np.testing.assert_allclose(remote.encode_batch([observation(3), observation(4)]),
                                    local.encode_batch([obs, local_obs(observation(4))]), atol=1e-5)
+
+
+def test_a_served_policy_reads_the_actions_in_flight_and_names_bad_ones(tmp_path):
+    """The spec tells the client how many actions in flight the policy reads; the remote answer to an observation
+    with them is the local one, and a prefix the policy cannot read gets an error frame naming it."""
+    run = write_run(tmp_path / "run", action_prefix=2)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        local = load_policy(run, device="cpu")
+    finally:
+        torch.set_num_threads(threads)
+    in_flight = local.infer(local_obs(observation(5)))["actions"][:2]
+    told = {**observation(5), "action_prefix": in_flight}
+    with running_server(run, tmp_path) as (port, _), RemotePolicy(f"127.0.0.1:{port}", api_key=KEY) as remote:
+        assert remote.spec.action_prefix == 2
+        np.testing.assert_allclose(remote.infer(told)["actions"], local.infer(local_obs(told))["actions"], atol=1e-5)
+        with pytest.raises(ServerError, match="reads at most 2"):
+            remote.infer({**told, "action_prefix": np.zeros((3, 7), np.float32)})
+        assert remote.infer(observation(5))["actions"].shape == (8, 7)
 
 
 def test_two_clients_at_once(server, local):

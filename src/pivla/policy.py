@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pivla.control.contract import Calibration, PolicySpec
+from pivla.control.contract import Calibration, PolicySpec, action_prefix_of
 from pivla.control.math import action_uncertainty, dequantize
 from pivla.data.normalize import ActionStats, NormStats
 from pivla.data.text import WordTokenizer, load_text_tokenizer
@@ -97,7 +97,8 @@ class Policy:
             cameras=tuple(self.cfg.cameras), image_size=self.cfg.image_size,
             proprio=_proprio_lengths(stats, self.cfg.proprio_keys),
             chunk=self.cfg.chunk, horizon=self.cfg.horizon, action_space=stats.space,
-            latent_dim=model.latent_dim, target_cameras=model.target.cameras, target_proprio=model.target.proprio > 0)
+            latent_dim=model.latent_dim, target_cameras=model.target.cameras, target_proprio=model.target.proprio > 0,
+            action_prefix=self.cfg.action_prefix)
         lengths = [n for _, n in self.spec.proprio]
         self._inputs = input_pipeline(self.cfg, stats.proprio, text, lengths)
         self._proprio = compose(proprio_steps(self.cfg, stats.proprio, lengths))
@@ -156,12 +157,27 @@ class Policy:
     def model_inputs(self, obs_list: Sequence[Mapping[str, Any]]) -> dict[str, torch.Tensor]:
         """Observations through the input pipeline, batched as tensors on the policy's device."""
         samples = [self._inputs(obs) for obs in obs_list]
-        return {
+        inputs = {
             "images": images_to_tensor(np.stack([s["images"] for s in samples]), self.device),
             "text_ids": torch.from_numpy(np.stack([s["text_ids"] for s in samples])).to(self.device),
             "text_mask": torch.from_numpy(np.stack([s["text_mask"] for s in samples])).to(self.device),
             "proprio": torch.from_numpy(np.stack([s["proprio"] for s in samples])).to(self.device),
         }
+        prefixes = [action_prefix_of(obs, self.spec) for obs in obs_list]
+        if any(p is not None for p in prefixes):
+            inputs.update({k: torch.from_numpy(v).to(self.device) for k, v in self._prefix_inputs(prefixes).items()})
+        return inputs
+
+    def _prefix_inputs(self, prefixes: Sequence[np.ndarray | None]) -> dict[str, np.ndarray]:
+        """Each observation's actions in flight, normalised like the training targets, as the model's
+        ``action_prefix`` (N, K, D) and ``prefix_mask`` (N, K)."""
+        k, d = self.cfg.chunk, self.spec.action_dim
+        actions, mask = np.zeros((len(prefixes), k, d), np.float32), np.zeros((len(prefixes), k), np.float32)
+        for i, p in enumerate(prefixes):
+            if p is not None:
+                actions[i, : len(p)] = self.stats.action.normalize(p)
+                mask[i, : len(p)] = 1
+        return {"action_prefix": actions, "prefix_mask": mask}
 
     @torch.inference_mode()
     def infer_batch(self, obs_list: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:

@@ -65,7 +65,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from pivla.control.contract import ChunkPolicy
+from pivla.control.contract import ACTION_PREFIX, ChunkPolicy
 from pivla.control.executors import (
     AURDSettings,
     BaseExecutor,
@@ -117,6 +117,10 @@ class AsyncConfig:
     blend_steps: int = 2
     """blend: steps over which the old chunk's weight falls linearly to 0; align: steps the difference is spread
     over."""
+    prefix: bool = True
+    """Tell a policy that reads actions in flight (``PolicySpec.action_prefix`` > 0) the current plan's actions it
+    expects to execute before the answer takes over, so that the answer plans what follows them (fixed,
+    AdaHorizon and AURD; ensembling averages chunks instead). No effect on other policies."""
 
 
 ExecutionConfig = _choice(SyncConfig) | _choice(AsyncConfig)
@@ -221,6 +225,7 @@ class AsyncExecutor(BaseExecutor):
         self._ready: tuple[Arrival, _Query] | None = None  # arrived, not executing yet
         self._blend = np.zeros((0, 7), np.float32)
         self._settings: Any = None
+        self._prefix_max = 0  # actions in flight the policy reads (set at the episode's first step)
         self.stale = self.out_of_order = 0
         self._row: dict[str, Any] = {}
         # seam="align" on end-effector deltas: the motion commanded over the last K steps (set at the first step;
@@ -234,6 +239,7 @@ class AsyncExecutor(BaseExecutor):
     def _start_episode(self, policy: ChunkPolicy) -> None:
         """At an episode's first step: the executor's settings, and the motion record the align seam needs."""
         self._settings = self._setup(policy)
+        self._prefix_max = policy.spec.action_prefix if self.execution.prefix else 0
         if self.execution.seam == "align" and policy.spec.action_space.kind is ActionKind.EE_DELTA:
             self._moved = deque(maxlen=policy.spec.chunk)
 
@@ -262,11 +268,25 @@ class AsyncExecutor(BaseExecutor):
         return self._pending is None and self._ready is None and self._remaining() <= self.threshold()
 
     def _send(self, obs: dict, t: int, cut: _Cut | None) -> None:
-        self._pending = _Query(self.link.send(obs, t), t, cut)
+        self._pending = _Query(self.link.send(self._with_prefix(obs, cut), t), t, cut)
         self.queries += 1
         self._row["sent"] = Sent(cut.event.value) if cut else Sent.THRESHOLD
         self._receive(t)  # at zero latency the chunk is here at once
         self._take_over(t)
+
+    def _with_prefix(self, obs: dict, cut: _Cut | None) -> dict:
+        """``obs`` with the actions in flight (``ACTION_PREFIX``): the current plan's next actions, as many as are
+        expected to execute before the answer takes over (at most the policy's P), when the policy reads them."""
+        n = min(self._prefix_max, self._before_takeover(cut))
+        if n <= 0:
+            return obs
+        c = self._chunk
+        return {**obs, ACTION_PREFIX: c.plan.actions[c.step: c.step + n]}
+
+    def _before_takeover(self, cut: _Cut | None) -> int:
+        """Actions of the current plan expected to execute before the answer to a query sent now takes over: it
+        takes over on arrival, after the link's expected delay."""
+        return min(self._remaining(), self.link.expected_delay_steps())
 
     def _receive(self, t: int) -> None:
         for arrival in self.link.arrivals(t):
@@ -455,6 +475,10 @@ class AsyncAURDExecutor(AsyncExecutor):
                 if self._chunk is chunk:
                     break
         return self._execute(policy, obs, t, self._signals(policy, obs, t))
+
+    def _before_takeover(self, cut: _Cut | None) -> int:
+        """A threshold's answer waits for the current plan to complete; a cut's takes over on arrival."""
+        return self._remaining() if cut is None else super()._before_takeover(cut)
 
     def _take_over(self, t: int) -> None:
         if self._ready is None:

@@ -15,6 +15,10 @@ import numpy as np
 
 from pivla.data.action_space import EE_DELTA, ActionSpace, pose_key
 
+# An observation's actions in flight: (n, D) physical actions, n <= PolicySpec.action_prefix, that the arm executes
+# from this observation's step on while the query is out; the chunk that answers it plans what follows them
+ACTION_PREFIX = "action_prefix"
+
 # Eq. 13's weight of U_act in U when nothing was calibrated (docs/method.md, "AURD")
 DEFAULT_ETA = 0.7
 
@@ -52,6 +56,7 @@ class PolicySpec:
     latent_dim: int = 0
     target_cameras: int = 1  # leading cameras the target encoder reads (AURD's observed latent)
     target_proprio: bool = False  # the target latent reads the proprio keys too
+    action_prefix: int = 0  # P: actions in flight an observation may carry under ACTION_PREFIX (0: none)
     extra: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
 
     @property
@@ -74,7 +79,8 @@ class PolicySpec:
                 "proprio": [[k, n] for k, n in self.proprio], "chunk": self.chunk, "horizon": self.horizon,
                 "action_dim": self.action_dim, "action_space": self.action_space.to_dict(),
                 "latent_dim": self.latent_dim,
-                "target_cameras": self.target_cameras, "target_proprio": self.target_proprio, "extra": dict(self.extra)}
+                "target_cameras": self.target_cameras, "target_proprio": self.target_proprio,
+                "action_prefix": self.action_prefix, "extra": dict(self.extra)}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> PolicySpec:
@@ -83,7 +89,31 @@ class PolicySpec:
                    horizon=int(d["horizon"]), action_space=_action_space(d.get("action_space")),
                    latent_dim=int(d.get("latent_dim", 0)),
                    target_cameras=int(d.get("target_cameras", 1)), target_proprio=bool(d.get("target_proprio", False)),
-                   extra=dict(d.get("extra", {})))
+                   action_prefix=int(d.get("action_prefix", 0)), extra=dict(d.get("extra", {})))
+
+
+def action_prefix_of(obs: Mapping[str, Any], spec: PolicySpec) -> np.ndarray | None:
+    """An observation's actions in flight as an (n, D) float32 array (None when it carries none, or n = 0); a
+    ValueError naming the problem for a policy that reads none, a wrong shape, more than P of them or NaN."""
+    if ACTION_PREFIX not in obs:
+        return None
+    if spec.action_prefix == 0:
+        raise ValueError(f"observation carries {ACTION_PREFIX!r}, and this policy was not trained to read actions "
+                         "in flight (its action_prefix is 0)")
+    try:
+        arr = np.asarray(obs[ACTION_PREFIX], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"observation {ACTION_PREFIX!r} must be an (n, {spec.action_dim}) array of numbers") from None
+    if arr.size == 0:
+        return None
+    if arr.ndim != 2 or arr.shape[1] != spec.action_dim:
+        raise ValueError(f"observation {ACTION_PREFIX!r} must be (n, {spec.action_dim}) actions, got {arr.shape}")
+    if len(arr) > spec.action_prefix:
+        raise ValueError(f"observation {ACTION_PREFIX!r} holds {len(arr)} actions; this policy reads at most "
+                         f"{spec.action_prefix}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"observation {ACTION_PREFIX!r} contains NaN or inf")
+    return arr.astype(np.float32)
 
 
 def _action_space(value: Any) -> ActionSpace:

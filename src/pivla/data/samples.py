@@ -226,6 +226,16 @@ class ChunkDataset:
         ep = self.episodes[e]
         return {"images": ep.images[t], "proprio": ep.proprio[t], "text_ids": ep.text_ids, "text_mask": ep.text_mask}
 
+    def _prefix(self, actions: np.ndarray, valid: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        """With ``action_prefix`` P: the first d actions of the target chunk as the actions in flight, d uniform in
+        0..P (0: the chunk as without latency), inside the episode; none without P (the random stream unchanged)."""
+        p = self.cfg.action_prefix
+        if p == 0:
+            return {}
+        mask = (np.arange(len(actions)) < rng.integers(0, p + 1)) & valid
+        return {"action_prefix": np.where(mask[:, None], actions, 0.0).astype(np.float32),
+                "prefix_mask": mask.astype(np.float32)}
+
     def sample(self, i: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
         e, t = self.index[i]
         ep = self.episodes[e]
@@ -247,9 +257,11 @@ class ChunkDataset:
             sp_mask = np.zeros(self.sp_steps, np.float32)
         future = np.minimum(t + ks, T - 1)
         chunks = ep.actions.ndim == 3  # a relative policy's targets, one chunk per step
+        actions = ep.actions[t] if chunks else ep.actions[idx]
         return {
+            **self._prefix(actions, valid, rng),
             **self.observation(e, t),
-            "actions": ep.actions[t] if chunks else ep.actions[idx],
+            "actions": actions,
             "bins": ep.bins[t] if chunks else ep.bins[idx],
             "action_mask": valid.astype(np.float32),
             "imitate": np.float32(ep.imitate),

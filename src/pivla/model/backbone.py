@@ -6,7 +6,8 @@ its own target encoder (the default) also exposes ``vision`` with ``pooled(image
 
 ``batch`` holds tensors already normalised outside the model:
   images (B, n_cam, 3, H, W) float in [0, 1], text_ids (B, L) int64, text_mask (B, L) bool (True = word),
-  proprio (B, P) float.
+  proprio (B, P) float; with ``ModelConfig.action_prefix``, optionally action_prefix (B, K, D) normalised actions
+  in flight and prefix_mask (B, K) (1 where given).
 """
 
 from __future__ import annotations
@@ -174,6 +175,11 @@ class SmallBackbone(nn.Module):
         self.text_pos = nn.Parameter(torch.randn(1, cfg.max_text_len, d) * 0.02)
         self.proprio_proj = nn.Sequential(nn.Linear(cfg.proprio_dim, d), nn.GELU(), nn.Linear(d, d))
         self.queries = nn.Parameter(torch.randn(1, self.n_cog + cfg.chunk, d) * 0.02)
+        self.prefix_proj = None
+        if cfg.action_prefix > 0:
+            # the k-th motor query is told "action k is already decided" by adding its embedding (and a flag)
+            self.prefix_proj = nn.Linear(cfg.action_dim, d)
+            self.prefix_flag = nn.Parameter(torch.randn(d) * 0.02)
         layer = nn.TransformerEncoderLayer(
             d, bc.n_heads, d * bc.ff_mult, dropout=bc.dropout, activation="gelu", batch_first=True, norm_first=True
         )
@@ -193,7 +199,7 @@ class SmallBackbone(nn.Module):
             img = torch.cat([img, self.kp_proj(kp) + self.kp_cam], dim=1)
         text = self.word_emb(batch["text_ids"]) + self.text_pos[:, : batch["text_ids"].shape[1]]
         prop = self.proprio_proj(batch["proprio"]).unsqueeze(1)
-        queries = self.queries.expand(b, -1, -1)
+        queries = self._told_prefix(self.queries.expand(b, -1, -1), batch)
         tokens = torch.cat([img, text, prop, queries], dim=1)
         pad = torch.zeros(b, tokens.shape[1], dtype=torch.bool, device=tokens.device)
         n_img = img.shape[1]
@@ -201,6 +207,15 @@ class SmallBackbone(nn.Module):
         out = self.norm(self.fusion(tokens, src_key_padding_mask=pad))
         q = out[:, -(self.n_cog + self.chunk) :]
         return q[:, : self.n_cog], q[:, self.n_cog :]
+
+    def _told_prefix(self, queries: torch.Tensor, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The motor queries of the actions in flight (``action_prefix`` (B, K, D) normalised, ``prefix_mask`` (B, K),
+        1 where given) carry those actions; a batch without them, or a mask of zeros, leaves them as they are."""
+        if self.prefix_proj is None or "action_prefix" not in batch:
+            return queries
+        given = batch["prefix_mask"].to(queries.dtype).unsqueeze(-1)
+        told = given * (self.prefix_proj(batch["action_prefix"].to(queries.dtype)) + self.prefix_flag)
+        return torch.cat([queries[:, : self.n_cog], queries[:, self.n_cog :] + told], dim=1)
 
     def _film(self, batch: dict[str, torch.Tensor]) -> list[torch.Tensor] | None:
         """Each CNN stage's (B, 2C) FiLM parameters from the mean of the instruction's word embeddings."""

@@ -218,6 +218,20 @@ def build_target_encoder(cfg: ModelConfig, backbone: nn.Module) -> TargetEncoder
     raise ValueError(f"unknown target encoder {tc.name!r}; choose 'ema', 'frozen', 'dinov2' or 'thumbnail'")
 
 
+def check_action_prefix(cfg: ModelConfig) -> None:
+    """A ValueError naming what cannot read actions in flight: more than K - 1 of them, another backbone than the
+    small one, or relative actions (offsets from a pose the actions in flight have already moved away from)."""
+    p = cfg.action_prefix
+    if p == 0:
+        return
+    if not 0 < p < cfg.chunk:
+        raise ValueError(f"action_prefix must be 0 to K - 1 = {cfg.chunk - 1} actions, got {p}")
+    if cfg.backbone.name != "small":
+        raise ValueError(f"action_prefix: only the small backbone reads actions in flight, not {cfg.backbone.name!r}")
+    if cfg.relative_actions:
+        raise ValueError("action_prefix does not combine with relative_actions")
+
+
 class CMSModel(nn.Module):
     """Backbone + the four heads of Eqs. 4-7 + the decoder g + the target encoder."""
 
@@ -227,6 +241,7 @@ class CMSModel(nn.Module):
         if unset:
             raise ValueError(f"model config leaves {unset} to the dataset: fill them from one first "
                              "(pivla.data.samples.resolve_inputs)")
+        check_action_prefix(cfg)
         self.cfg = cfg
         self.backbone = build_backbone(cfg, vocab_size)
         d = self.backbone.d_model

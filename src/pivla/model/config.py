@@ -119,6 +119,11 @@ class ModelConfig:
     """Absolute joint targets only: the heads predict each chunk's targets as offsets from the present pose (the
     proprio key of the action's dimension) at its first step, all but the gripper (openpi's delta actions); the
     policy adds the pose back, so what it exchanges stays absolute."""
+    action_prefix: int = 0
+    """P, actions in flight the model can be told (0: none). With a query in flight, the arm executes the actions
+    the current plan still holds; told them, the model plans the chunk that follows them (training feeds the
+    first d of each target chunk, d uniform in 0..P; asynchronous execution sends the planned actions of the
+    steps the query is expected to spend in flight; docs/latency.md#actions-in-flight)."""
     max_text_len: int = 16
     """Instruction tokens kept."""
     state_hidden: int = 256

@@ -25,7 +25,7 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidSta
 from websockets.frames import CloseCode
 from websockets.sync.client import ClientConnection, connect
 
-from pivla.control.contract import Calibration, PolicySpec
+from pivla.control.contract import ACTION_PREFIX, Calibration, PolicySpec
 from pivla.data.normalize import ActionStats
 from pivla.model.onnx_encoder import ObservationEncoder
 from pivla.model.pixels import resize_images
@@ -129,7 +129,7 @@ class RemotePolicy:
         to name the problem."""
         cameras = self.spec.cameras[: self.spec.target_cameras] if encode else self.spec.cameras
         wire = {c: self._model_picture(obs[c]) for c in cameras if c in obs}
-        keys = () if encode else P.INSTRUCTION_KEYS
+        keys = () if encode else (*P.INSTRUCTION_KEYS, ACTION_PREFIX)
         if self.spec.target_proprio or not encode:
             keys = (*self.spec.proprio_keys, *keys)
         wire.update({k: obs[k] for k in keys if k in obs})

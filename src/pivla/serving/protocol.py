@@ -20,10 +20,11 @@ When the server has an API key, the opening request must carry ``Authorization: 
 
    - an observation map (openpi's request): the policy's camera keys (HxWx3 uint8, any size up to
      ``max_image_side``, resized to the model's), its proprio keys (numbers, each of its declared length,
-     finite) and ``instruction`` or openpi's ``prompt`` (a str; both may be given if they are equal). Other
-     keys are ignored. Reply: the policy's ``infer`` output, ``actions`` (K, 7) physical and the rest
-     (``actions_normalized``, ``u_act``, ``latents``, ``values``, ...), plus ``server_timing``
-     ``{"infer_ms": float}`` as openpi's server adds it.
+     finite) and ``instruction`` or openpi's ``prompt`` (a str; both may be given if they are equal); for a
+     policy whose spec has ``action_prefix`` P > 0, optionally ``action_prefix``: the (n, D) physical actions,
+     n <= P, the arm executes while the query is in flight. Other keys are ignored. Reply: the policy's
+     ``infer`` output, ``actions`` (K, 7) physical and the rest (``actions_normalized``, ``u_act``,
+     ``latents``, ``values``, ...), plus ``server_timing`` ``{"infer_ms": float}`` as openpi's server adds it.
    - ``{"method": "infer", "observation": obs, "outputs": [names]}``: the same, with only the named
      outputs (``outputs`` is optional). An AURD client needs ``CONTROL_OUTPUTS``: 5 kB for the recipe's
      model where all outputs take 63 kB (``discrete_probs`` alone is K x 7 x 256 floats).
@@ -63,7 +64,7 @@ from typing import Any
 
 import numpy as np
 
-from pivla.control.contract import PolicySpec
+from pivla.control.contract import ACTION_PREFIX, PolicySpec, action_prefix_of
 
 PROTOCOL = "pivla-serving/1"
 METHOD_KEY = "method"
@@ -135,4 +136,10 @@ def check_observation(obs: Any, spec: PolicySpec, max_image_side: int, cameras: 
         out.update({k: check_proprio(obs, k, n) for k, n in spec.proprio})
     if proprio if text is None else text:  # the instruction goes with the proprio unless told otherwise
         out["instruction"] = instruction_of(obs)
+        try:
+            prefix = action_prefix_of(obs, spec)
+        except ValueError as e:
+            raise RequestError(str(e)) from None
+        if prefix is not None:
+            out[ACTION_PREFIX] = prefix
     return out
