@@ -87,6 +87,52 @@ def test_resume_matches_uninterrupted_run(tmp_path, synthetic_data):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
 
 
+def test_a_run_with_a_weight_average_deploys_it_and_resumes_both(tmp_path, synthetic_data):
+    """``--ema-decay``: model.safetensors is the average of the live weights, which the checkpoint keeps; a
+    run resumed from a checkpoint ends with the uninterrupted run's live weights and average."""
+    import shutil
+
+    from pivla.training.average import ema_decay_at
+
+    cfg = tiny_train_config(synthetic_data, tmp_path / "full", steps=20, ckpt_every=10, ema_decay=0.9)
+    t = Trainer(cfg)
+    t.run_dir.mkdir(parents=True)
+    expected = {k: v.detach().clone() for k, v in t.average.shadow.items()}
+    for n in range(cfg.steps):
+        if n % 10 == 0:
+            t._refresh_values()
+        t.train_step()
+        live = dict(t.model.named_parameters())
+        for k in expected:  # the average, spelled out: e <- d e + (1 - d) w, d tempered over the first updates
+            d = ema_decay_at(0.9, n)
+            expected[k] = d * expected[k] + (1 - d) * live[k].detach()
+    t._save(final=True)
+    deployed, live = ck.load_tensors(t.run_dir / ck.MODEL_FILE), dict(t.model.named_parameters())
+    moved = [k for k in expected if not torch.equal(expected[k], live[k].detach())]
+    assert moved, "the average equals the live weights: nothing was averaged"
+    for k in expected:
+        torch.testing.assert_close(deployed[k], expected[k], rtol=1e-5, atol=1e-6, msg=k)
+    kept = ck.load_tensors(ck.latest_checkpoint(t.run_dir) / ck.MODEL_FILE)
+    for k in moved:
+        torch.testing.assert_close(kept[k], live[k].detach(), rtol=0, atol=0, msg=k)
+    full = train(dataclasses.replace(cfg, out=str(tmp_path / "ref")))
+    shutil.copytree(full, tmp_path / "killed")
+    shutil.rmtree(tmp_path / "killed" / "checkpoints" / "step_00000020")  # killed between steps 10 and 20
+    (tmp_path / "killed" / ck.MODEL_FILE).unlink()
+    resumed = train(dataclasses.replace(cfg, out=str(tmp_path / "killed")), resume=True)
+    for name in (ck.MODEL_FILE, f"checkpoints/step_00000020/{ck.AVERAGE_FILE}"):
+        a, b = ck.load_tensors(full / name), ck.load_tensors(resumed / name)
+        assert a.keys() == b.keys()
+        for k in a:
+            torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+    train(tiny_train_config(synthetic_data, tmp_path / "plain", steps=10, ckpt_every=10))
+    with pytest.raises(ValueError, match="weight average"):  # a checkpoint without one cannot resume an average
+        train(tiny_train_config(synthetic_data, tmp_path / "plain", steps=20, ckpt_every=10, ema_decay=0.9),
+              resume=True)
+    with pytest.raises(ValueError, match="ema-decay"):
+        Trainer(tiny_train_config(synthetic_data, tmp_path / "bad", ema_decay=1.0))
+
+
 def test_the_clock_adds_checkpoints_a_resume_continues_from(tmp_path, synthetic_data):
     """``ckpt_minutes`` checkpoints at log steps between the step interval's; resuming from one of them trains
     the weights of the uninterrupted run."""

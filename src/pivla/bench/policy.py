@@ -105,6 +105,8 @@ class TrainBenchConfig:
     """Autocast precision (bf16 runs on CPUs with AVX-512 BF16 or AMX at speed, emulated elsewhere)."""
     loss: LossConfig = field(default_factory=LossConfig)
     """The objective's terms (e.g. ``--loss.no-use-sp --loss.no-use-rl --loss.no-use-recon`` times IL only)."""
+    ema_decay: float | None = None
+    """The weight average's decay (None: the preset's; 0: off), to time its update."""
 
 
 def run_train_bench(cfg: TrainBenchConfig) -> dict:
@@ -113,6 +115,8 @@ def run_train_bench(cfg: TrainBenchConfig) -> dict:
         tc = dataclasses.replace(PRESETS[cfg.preset](), data=f"{tmp}/data", out=f"{tmp}/run", steps=cfg.steps,
                                  batch_size=cfg.batch_size, progress=False, mixed_precision=cfg.mixed_precision,
                                  loss=cfg.loss)
+        if cfg.ema_decay is not None:
+            tc = dataclasses.replace(tc, ema_decay=cfg.ema_decay)
         tc.model.backbone.grid_tokens = cfg.grid_tokens
         make_synthetic_dataset(f"{tmp}/data", episodes_per_goal=4, T=40, size=tc.model.image_size)
         trainer = Trainer(tc)
@@ -125,9 +129,15 @@ def run_train_bench(cfg: TrainBenchConfig) -> dict:
         t = time.perf_counter()  # the GAE refresh, timed warm: a pass of V over every training frame
         trainer._state_values(trainer.train_set)
         refresh_ms = (time.perf_counter() - t) * 1e3 / sum(len(ep.actions) for ep in trainer.train_set.episodes)
+        average_ms = None
+        if trainer.average is not None:  # the weight average's update, part of every step above
+            t = time.perf_counter()
+            for _ in range(20):
+                trainer.average.update(trainer.model)
+            average_ms = round((time.perf_counter() - t) * 1e3 / 20, 3)
     med = float(np.median(times[3:]))
     return {"train_step_s_median": round(med, 4), "samples_per_s": round(cfg.batch_size / med, 1),
-            "value_refresh_ms_per_frame": round(refresh_ms, 3),
+            "value_refresh_ms_per_frame": round(refresh_ms, 3), "weight_average_ms": average_ms,
             "batch_size": cfg.batch_size, "threads": cfg.threads, "grid_tokens": cfg.grid_tokens,
             "preset": cfg.preset, "image_size": tc.model.image_size, "cameras": len(trainer.cfg.model.cameras),
             "mixed_precision": cfg.mixed_precision, "loss": dataclasses.asdict(cfg.loss)}

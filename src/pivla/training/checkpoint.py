@@ -24,6 +24,7 @@ STATS_FILE = "norm_stats.json"
 TOKENIZER_FILE = "tokenizer.json"
 STATUS_FILE = "status.json"
 CALIBRATION_FILE = "calibration.json"
+AVERAGE_FILE = "average.safetensors"  # a checkpoint's weight average (--ema-decay)
 
 
 # backbone fields whose default changed, with the value every run written before they existed used
@@ -84,12 +85,16 @@ def optimizer_from_tensors(tensors: dict[str, torch.Tensor], meta: dict) -> dict
 
 
 def save_checkpoint(run_dir: Path, step: int, model_state: dict[str, torch.Tensor], optimizer_state: dict,
-                    train_state: dict, keep: int = 2) -> Path:
-    """Write ``checkpoints/step_<N>`` completely under a temporary name, then rename it into place."""
+                    train_state: dict, keep: int = 2, average: dict[str, torch.Tensor] | None = None) -> Path:
+    """Write ``checkpoints/step_<N>`` completely under a temporary name, then rename it into place. The
+    checkpoint's model file holds the live weights, which a resumed run continues from; ``average``, the
+    weight average the run deploys, goes beside them."""
     ckpt_root = Path(run_dir) / "checkpoints"
     final = ckpt_root / f"step_{step:08d}"
     with atomic_dir(final, prefix=".tmp_") as tmp:
         save_tensors(tmp / MODEL_FILE, model_state)
+        if average is not None:
+            save_tensors(tmp / AVERAGE_FILE, average)
         opt_tensors, opt_meta = optimizer_to_tensors(optimizer_state)
         save_tensors(tmp / "optimizer.safetensors", opt_tensors)
         atomic_write_json(tmp / "optimizer.json", opt_meta)
@@ -108,3 +113,12 @@ def load_checkpoint(ckpt: Path) -> tuple[dict[str, torch.Tensor], dict, dict]:
     model_state = load_tensors(ckpt / MODEL_FILE)
     opt_state = optimizer_from_tensors(load_tensors(ckpt / "optimizer.safetensors"), read_json(ckpt / "optimizer.json"))
     return model_state, opt_state, read_json(ckpt / "train_state.json")
+
+
+def load_average(ckpt: Path) -> dict[str, torch.Tensor]:
+    """A checkpoint's weight average; a run with ``--ema-decay`` resumed from a checkpoint without one is refused."""
+    path = ckpt / AVERAGE_FILE
+    if not path.exists():
+        raise ValueError(f"{ckpt}: no weight average ({AVERAGE_FILE}) to resume --ema-decay from; "
+                         "resume with the run's own --ema-decay or start a new run")
+    return load_tensors(path)

@@ -87,6 +87,9 @@ class TrainConfig:
     """How evenly the tasks (told apart by instruction) are drawn: 0, every frame equally often; 1, every task
     equally often, whatever the length and number of its demonstrations; between, a frame's weight is its task's
     frame count to the power -task_balance (docs/experiments.md#equal-task-sampling)."""
+    ema_decay: float = 0.0
+    """Deploy an exponential moving average of the weights with this decay (0: the last weights). Checkpoints
+    keep the live weights too, so ``--resume`` continues both (docs/experiments.md#a-weight-average)."""
     val_fraction: float = 0.05
     """Share of episodes held out for validation loss (per task, whole episodes)."""
     augment_pad: int = 4
