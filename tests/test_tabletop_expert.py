@@ -68,3 +68,15 @@ def test_demonstrations_follow_through_after_success():
     assert (ep.actions[-(expert.follow_through + 1):, 6] == -1.0).all()
     assert ep.actions[-1, 2] > 0  # moving away at the end
     assert float(ep.rewards.sum()) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("suite", ["pick_place", "drawer", "stack", "long"])
+def test_the_expert_commands_only_what_a_policy_can_execute(suite):
+    """Policies threshold the gripper to fully open or closed (``ActionStats``), so a demonstration that held it
+    half open taught a motion no policy could repeat: the drawer's fully open fingers then landed on the drawer
+    front and ``open_drawer`` scored 0 of 20 for every policy. Every label is -1 or +1."""
+    for t in list_tasks(suite):
+        factory = lambda t=t: make_env(suite, t.name, realism="servo", render=False)  # noqa: E731
+        for ep in collect_episodes(factory, make_expert(0.3, miss=0.5), 2, seed=11):
+            assert ep.success
+            assert set(np.unique(ep.actions[:, 6]).tolist()) <= {-1.0, 1.0}

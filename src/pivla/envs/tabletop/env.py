@@ -5,7 +5,7 @@ Control (10 Hz, 50 physics steps of 2 ms per action). The action is LIBERO-like,
 - ``a[0:3]``: tool-centre translation, world frame, ``TRANS_SCALE`` metres per unit (0.02 m -> 0.2 m/s).
 - ``a[3:6]``: rotation, Euler (roll, pitch, yaw) of a world-frame delta rotation, ``ROT_SCALE`` rad per unit;
   the new target orientation is ``R(a[3:6] * ROT_SCALE) @ R_current``.
-- ``a[6]``: gripper, -1 fully open ... +1 closed (continuous; the expert uses +-1 except at the drawer).
+- ``a[6]``: gripper, -1 fully open ... +1 closed (continuous; the expert and every policy command +-1).
 
 Like the real arm (hobby servos report nothing back), the delta is applied to the *commanded* pose, i.e.
 the forward kinematics of the last joint command; the target is clipped to the workspace box

@@ -2,7 +2,9 @@
 7-D action (so demonstrations are exactly what a policy has to learn).
 
 Every task is a sequence of goals (:mod:`tasks`); each goal expands into phases (approach above, descend,
-close, lift, carry, lower, release, retreat). A phase drives the tool centre to a target that is
+close, lift, carry, lower, release, retreat; at the drawer, with the fingers closed throughout: approach,
+descend, pull or push, retreat). Every gripper command is fully open or closed, the only two a policy's
+thresholded gripper executes. A phase drives the tool centre to a target that is
 recomputed from the live state every step with a clipped proportional law, and ends when within tolerance
 or after a step budget (so a slipped grasp shows up as a failed episode, never as a hang). The loop is
 closed on the *measured* pose, so the same script works with servo backlash and deadband.
@@ -39,6 +41,10 @@ from pivla.envs.twin import check_misses, draw_miss
 Target = Callable[[dict], np.ndarray]
 STALL = 0.0015  # m over three steps: a phase whose tool moves less than this has stalled
 PRECISE_PHASES = frozenset({"lower", "close", "release"})  # no DART noise while these run
+# The drawer, worked with closed fingers (half depth along the closing axis, m): they come down HOOK_BEHIND
+# behind the handle bar's centre (midway to the drawer front) and pull it DRAWER_PULL towards the robot, or
+# PUSH_CLEARANCE in front of the bar (half depth HANDLE_HALF_DEPTH) and push it closed.
+FINGER_HALF_DEPTH, HANDLE_HALF_DEPTH, PUSH_CLEARANCE, HOOK_BEHIND, DRAWER_PULL = 0.01, 0.005, 0.012, 0.03, 0.075
 
 
 @dataclass(frozen=True)
@@ -223,22 +229,25 @@ class Expert:
         yield from self._move("retreat", lambda s: top, yaw, -1.0, tol=0.01, budget=15)
 
     def _drawer(self, kind: str) -> Iterator[np.ndarray]:
-        half_open = -0.3  # the back finger must fit between the handle bar and the drawer front
+        """Both drawer tasks with the fingers closed from the first step: a hook behind the handle bar pulls the
+        drawer open, the fingers in front of it push it closed. A grasp of the bar would add a gripper decision
+        at one instant of the episode, which policies learnt to skip (they hovered at the bar, open)."""
         start = self._state()["handle_pos"].copy()
         closed_x = start[0] + self._state()["drawer"]
+        bar_to_tool = HANDLE_HALF_DEPTH + FINGER_HALF_DEPTH  # tool centre to bar centre in x, at contact
+        if kind == "drawer_open":
+            offset, phase, goal_x = HOOK_BEHIND, "pull", closed_x - DRAWER_PULL + bar_to_tool
+        else:
+            offset, phase, goal_x = -(bar_to_tool + PUSH_CLEARANCE), "push", closed_x - bar_to_tool + 0.004
 
-        def above(s: dict) -> np.ndarray:
-            return s["handle_pos"] + [0.0, 0.0, self.approach]
+        def beside(s: dict) -> np.ndarray:
+            return s["handle_pos"] + [offset, 0.0, 0.0]
 
-        yield from self._move("approach", above, 0.0, half_open, tol=0.01)
-        yield from self._move("descend", lambda s: s["handle_pos"].copy(), 0.0, half_open, tol=0.004, budget=20)
-        yield from self._hold("close", 1.0, self.config.grip_steps, 0.0)
-        goal_x = closed_x - 0.075 if kind == "drawer_open" else closed_x + 0.004
-        yield from self._move("pull" if kind == "drawer_open" else "push",
-                              lambda s: np.array([goal_x, start[1], start[2]]), 0.0, 1.0, tol=0.004, budget=40)
-        yield from self._hold("release", half_open, self.config.grip_steps, 0.0)
+        yield from self._move("approach", lambda s: beside(s) + [0.0, 0.0, self.approach], 0.0, 1.0, tol=0.01)
+        yield from self._move("descend", beside, 0.0, 1.0, tol=0.004, budget=20)
+        yield from self._move(phase, lambda s: np.array([goal_x, start[1], start[2]]), 0.0, 1.0, tol=0.004, budget=40)
         top = self._state()["ee_pos"] + [0.0, 0.0, 0.06]
-        yield from self._move("retreat", lambda s: top, 0.0, half_open, tol=0.01, budget=15)
+        yield from self._move("retreat", lambda s: top, 0.0, 1.0, tol=0.01, budget=15)
 
     def _task_plan(self) -> Iterator[np.ndarray]:
         for goal in self.env.task.goals:

@@ -39,7 +39,9 @@ CLUTTER_SHAPES = (
 )
 # Cabinet: outer depth (x), half width (y), height (z); the drawer slides towards the robot (-x).
 CAB_DEPTH, CAB_HALF_W, CAB_H = 0.12, 0.075, 0.065
-HANDLE_STANDOFF, HANDLE_Z = 0.04, 0.04
+# The handle bar stands 6 cm off the drawer front: the closed fingers (2 cm deep) hook behind it with 1.5 cm
+# to spare on either side, and the fully open ones (35 mm travel + 10 mm a side) fit around it.
+HANDLE_STANDOFF, HANDLE_Z = 0.06, 0.04
 # The scene's MJCF model is named MODEL_PREFIX + task name, so a perturbation given only the compiled model
 # can tell which task (objects, instructed direction) it acts on.
 MODEL_PREFIX = "pivla_tabletop_"
