@@ -85,7 +85,8 @@ UNCHANGED = [
     ("pick_place", "ball_left", "static_distractors,dynamic_distractors,level=4", "ideal", 5, "200b69475514b40c",
      "00e583f6b69ac5be"),
     ("pick_place", "ball_left", "camera_jitter", "ideal", 11, "749f838fbcf4394b", "d64e6bb98f502b6d"),
-    ("drawer", "open_drawer", "randomized_scene,level=2", "ideal", 5, "ded415e2a4c5001f", "96436d24a86214b3"),
+    # the drawer's observations since its handle stands 6 cm off the front (before: 96436d24a86214b3)
+    ("drawer", "open_drawer", "randomized_scene,level=2", "ideal", 5, "ded415e2a4c5001f", "cb8a3948a4cf6dbf"),
     ("stack", 0, "static_distractors,level=6", "servo", 2, "77346b9e1e567ed8", "365d1f0ebd6e76f1"),
     # unseen_env since its style space was made disjoint from training's (before: eb1eaf05996e1191 /
     # 3ea854fdfc9bb311 and 3fcd9c384a6e98d6 / 58824ffbab313261)
