@@ -36,6 +36,7 @@ from pivla import arm
 from pivla.arm.rotations import wrap_angle
 from pivla.envs.tabletop import tasks
 from pivla.envs.tabletop.env import ROT_SCALE, TRANS_SCALE, TabletopEnv
+from pivla.envs.tabletop.scene import HANDLE_HALF_DEPTH
 from pivla.envs.twin import check_misses, draw_miss
 
 Target = Callable[[dict], np.ndarray]
@@ -43,8 +44,8 @@ STALL = 0.0015  # m over three steps: a phase whose tool moves less than this ha
 PRECISE_PHASES = frozenset({"lower", "close", "release"})  # no DART noise while these run
 # The drawer, worked with closed fingers (half depth along the closing axis, m): they come down HOOK_BEHIND
 # behind the handle bar's centre (midway to the drawer front) and pull it DRAWER_PULL towards the robot, or
-# PUSH_CLEARANCE in front of the bar (half depth HANDLE_HALF_DEPTH) and push it closed.
-FINGER_HALF_DEPTH, HANDLE_HALF_DEPTH, PUSH_CLEARANCE, HOOK_BEHIND, DRAWER_PULL = 0.01, 0.005, 0.012, 0.03, 0.075
+# PUSH_CLEARANCE in front of the bar and push it closed.
+FINGER_HALF_DEPTH, PUSH_CLEARANCE, HOOK_BEHIND, DRAWER_PULL = 0.01, 0.012, 0.03, 0.075
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ CAB_DEPTH, CAB_HALF_W, CAB_H = 0.12, 0.075, 0.065
 # The handle bar stands 6 cm off the drawer front: the closed fingers (2 cm deep) hook behind it with 1.5 cm
 # to spare on either side, and the fully open ones (35 mm travel + 10 mm a side) fit around it.
 HANDLE_STANDOFF, HANDLE_Z = 0.06, 0.04
+HANDLE_HALF_DEPTH = 0.005  # the bar's half thickness along x, the direction the drawer slides
 # The scene's MJCF model is named MODEL_PREFIX + task name, so a perturbation given only the compiled model
 # can tell which task (objects, instructed direction) it acts on.
 MODEL_PREFIX = "pivla_tabletop_"
@@ -93,7 +94,7 @@ def _cabinet_xml() -> str:
     ]
     hx = x0 - HANDLE_STANDOFF
     handle = [
-        ("handle", (hx, 0, HANDLE_Z), (0.005, 0.04, 0.005)),
+        ("handle", (hx, 0, HANDLE_Z), (HANDLE_HALF_DEPTH, 0.04, 0.005)),
         ("handle_post_l", ((hx + x0) / 2, 0.035, HANDLE_Z), ((x0 - hx) / 2, 0.004, 0.004)),
         ("handle_post_r", ((hx + x0) / 2, -0.035, HANDLE_Z), ((x0 - hx) / 2, 0.004, 0.004)),
     ]
