@@ -109,6 +109,37 @@ def test_a_missed_grasp_is_executed_but_not_labelled_and_then_recovered():
         Expert(ExpertConfig(miss=0.5, retries=0))
 
 
+def test_a_missed_placement_is_carried_beside_the_goal_then_brought_back():
+    """place_miss=1: the first carry is executed towards a point beside the green block while every label heads
+    for the block; the second carry starts centimetres away and brings the held block back over it before it is set
+    down. Policies that let go 2-3 cm beside the block had never seen that correction."""
+    env = make_env("stack", 0, image_size=32)
+    for place_miss in (0.0, 1.0):
+        expert = make_expert(0.0, place_miss=place_miss)
+        obs, _ = env.reset(seed=3)
+        expert.reset(env, seed=3)
+        carried, lowered = [], []  # (held block's horizontal distance from the green block, executed as labelled)
+        for _ in range(env.task.max_steps):
+            action = expert(obs)
+            if expert.phase in ("carry", "lower"):
+                objects = env.privileged_state()["objects"]
+                gap = np.linalg.norm(objects["red_block"]["pos"][:2] - objects["green_block"]["pos"][:2])
+                (carried if expert.phase == "carry" else lowered).append((gap, np.array_equal(action, expert.label)))
+            obs, _, success, truncated, _ = env.step(action)
+            if success or truncated:
+                break
+        assert success
+        as_labelled = [same for _, same in carried]
+        if place_miss == 0.0:
+            assert all(as_labelled)
+            continue
+        assert not as_labelled[0]
+        back = as_labelled.index(True)  # the first step of the second carry
+        assert all(as_labelled[back:]) and carried[back][0] >= 0.015 and lowered[0][0] < 0.01
+    with pytest.raises(ValueError, match="place_miss"):
+        Expert(ExpertConfig(place_miss=1.5))
+
+
 def test_parse_perturb_grammar():
     assert parse_perturb(None) == PerturbConfig() and parse_perturb("") == PerturbConfig()
     cfg = parse_perturb(" unseen_env , dynamic_distractors,level=4")

@@ -74,6 +74,9 @@ class CollectConfig:
     miss: float = 0.0
     """Share of episodes whose first grasp is executed off the object, so the demonstrations show reopening
     and grasping again (labels stay clean)."""
+    place_miss: float = 0.0
+    """tabletop: share of episodes whose first carry is executed to a point 2-4 cm beside where the object goes, so
+    the demonstrations show the held object brought back over its goal before it is set down (labels stay clean)."""
     paraphrase: bool = False
     """Draw an instruction paraphrase per episode."""
     keep_failures: bool = False
@@ -141,6 +144,7 @@ def collect_demos(cfg: CollectConfig) -> int:
             "instruction": spec.instruction, "max_steps": spec.max_steps, "realism": cfg.realism,
             "perturb": twin.perturb, "image_size": cfg.size, **twin.meta,
             "seed": cfg.seed, "seed_family": cfg.seed_family, "noise": cfg.noise, "miss": cfg.miss, "attempts": n,
+            **({"place_miss": cfg.place_miss} if cfg.place_miss else {}),
         }
         path = write_episodes(out / f"{spec.name}_demo.hdf5", episodes, env_meta, action_space=twin.action_space)
         rate = (sum(e.success for e in episodes) if cfg.keep_failures else len(episodes)) / n
@@ -189,6 +193,8 @@ def _twin(cfg: CollectConfig) -> _Twin:
     """The twin's pieces for ``cfg.env`` (tabletop or so101), imported only when it collects: a twin's import sets
     the process's MuJoCo rendering variables."""
     if cfg.env == "so101":
+        if cfg.place_miss:
+            raise ValueError("place_miss: only the tabletop expert misses a placement on purpose, not so101's")
         from pivla.envs import so101
         from pivla.envs.so101.expert import make_expert as so101_expert
 
@@ -205,14 +211,15 @@ def _twin(cfg: CollectConfig) -> _Twin:
 
     meta = {"control_hz": CONTROL_HZ, "action": {"translation_m_per_unit": TRANS_SCALE,
                                                  "rotation_rad_per_unit": ROT_SCALE, "gripper": "-1 open, +1 closed"}}
-    return _Twin(make_tabletop, make_expert(cfg.noise, cfg.miss), parse_perturb(cfg.perturb).spec(), meta, EE_DELTA)
+    expert = make_expert(cfg.noise, cfg.miss, cfg.place_miss)
+    return _Twin(make_tabletop, expert, parse_perturb(cfg.perturb).spec(), meta, EE_DELTA)
 
 
 def _collect_libero(cfg: CollectConfig) -> int:
     """LIBERO demonstrations by the privileged-state scripted experts, one file per task; ``workers`` spreads
     whole tasks over processes (each LIBERO process holds ~2 GB)."""
     unsupported = {"perturb (use a LIBERO-PRO suite)": cfg.perturb, "paraphrase (use a *_lan suite)": cfg.paraphrase,
-                   "realism servo": cfg.realism != "ideal",
+                   "realism servo": cfg.realism != "ideal", "place_miss (the tabletop expert's)": cfg.place_miss,
                    "backend ray (whole tasks run in local processes, --workers)": cfg.dispatch.backend == "ray"}
     given = [flag for flag, value in unsupported.items() if value]
     if given:

@@ -23,6 +23,11 @@ centimetres off the object and closed on nothing, while the labels stay the clea
 the second approach that follow are recorded as they are. Policies trained without it closed the gripper
 short of a small object and then hovered with it closed for the rest of the episode
 (docs/experiments.md#missed-grasp-recovery-in-the-demonstrations).
+
+``place_miss > 0`` does the same for setting an object down on another: in that share of episodes the carry is first
+*executed* to a point 2-4 cm beside the object below, then brought back over it. Policies trained without it let the
+block go 2-3 cm beside the one below, where the demonstrations had never shown a correction
+(docs/experiments.md#a-missed-placement-in-the-demonstrations).
 """
 
 from __future__ import annotations
@@ -61,6 +66,7 @@ class ExpertConfig:
     retries: int = 2  # further grasps after one that did not hold
     miss: float = 0.0  # share of episodes whose first grasp is executed off the object (labels stay clean)
     miss_offset: tuple[float, float] = (0.02, 0.04)  # m, horizontal distance of a missed grasp from the object
+    place_miss: float = 0.0  # share of episodes whose first carry is executed towards a point beside the goal
 
 
 class Expert:
@@ -71,6 +77,8 @@ class Expert:
     def __init__(self, config: ExpertConfig | None = None):
         self.config = config or ExpertConfig()
         check_misses(self.config.miss, self.config.retries)
+        if not 0.0 <= self.config.place_miss <= 1.0:
+            raise ValueError(f"place_miss must be a share in [0, 1], got {self.config.place_miss}")
         self.env: TabletopEnv | None = None
         self._plan: Iterator[np.ndarray] | None = None
         self.phase = ""
@@ -91,6 +99,11 @@ class Expert:
         self.approach = cfg.approach + 0.01 * jitter[1]
         self.gain = cfg.gain * (1.0 + 0.1 * jitter[2])
         self._miss = draw_miss(self.rng, cfg.miss, cfg.miss_offset)
+        # only a goal the cameras see (an object to stack on) can be missed: the target of a move is a point relative to
+        # where the object started, which no picture shows once it is lifted, so a correction towards it cannot be
+        # learnt. Drawn only then, so that every other demonstration keeps the draws it had.
+        stacks = cfg.place_miss > 0 and any(goal.kind == "stack" for goal in self.env.task.goals)
+        self._place_miss = draw_miss(self.rng, cfg.place_miss, cfg.miss_offset) if stacks else None
         self._plan = self._task_plan()
         self._executed: np.ndarray | None = None
         self.label: np.ndarray | None = None
@@ -208,8 +221,10 @@ class Expert:
             self._executed = self._action(state, state["ee_pos"], yaw, 1.0)
             yield self._action(state, grasp(state), yaw, -1.0)
 
-    def _place(self, name: str, xy: Callable[[dict], np.ndarray], rest_z: float) -> Iterator[np.ndarray]:
-        """Carry the held object above ``xy``, lower it until it rests at ``rest_z``, release, retreat."""
+    def _place(self, name: str, xy: Callable[[dict], np.ndarray], rest_z: float,
+               miss: np.ndarray | None = None) -> Iterator[np.ndarray]:
+        """Carry the held object above ``xy``, lower it until it rests at ``rest_z``, release, retreat. With ``miss``
+        the carry is first executed to ``miss`` (m) beside ``xy`` while labelled towards it, then brought back."""
         yaw = float(arm.mat_to_euler(self._state()["ee_mat"])[2])
         carry_z = self._state()["ee_pos"][2]
 
@@ -222,6 +237,8 @@ class Expert:
         def lower(s: dict) -> np.ndarray:
             return np.array([*(xy(s) + offset(s)[:2]), rest_z + 0.003 + offset(s)[2]])
 
+        if miss is not None:
+            yield from self._move("carry", carry, yaw, 1.0, tol=0.008, aim=lambda s: carry(s) + miss)
         yield from self._move("carry", carry, yaw, 1.0, tol=0.008)
         yield from self._move("lower", lower, yaw, 1.0, tol=0.004, budget=20,
                               done=lambda s: s["objects"][name]["pos"][2] < rest_z + 0.006)
@@ -263,8 +280,10 @@ class Expert:
                 base = tasks.OBJECTS[goal.onto]
                 yield from self._pick(goal.obj, self._state()["objects"][goal.onto]["pos"][:2])
                 rest = base.rest_z + base.size[2] + tasks.OBJECTS[goal.obj].size[2]
-                yield from self._place(goal.obj, lambda s, goal=goal: s["objects"][goal.onto]["pos"][:2].copy(), rest)
+                miss, self._place_miss = self._place_miss, None
+                yield from self._place(goal.obj, lambda s, goal=goal: s["objects"][goal.onto]["pos"][:2].copy(), rest,
+                                       miss)
 
 
-def make_expert(noise: float = 0.0, miss: float = 0.0) -> Expert:
-    return Expert(ExpertConfig(noise=noise, miss=miss))
+def make_expert(noise: float = 0.0, miss: float = 0.0, place_miss: float = 0.0) -> Expert:
+    return Expert(ExpertConfig(noise=noise, miss=miss, place_miss=place_miss))

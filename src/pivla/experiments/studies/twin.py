@@ -139,13 +139,13 @@ class Benchmark:
         cfg, layout, recipe = self.cfg, self.layout, self.recipes[name]
         base = CollectConfig(out="", episodes=cfg.train_episodes, seed_family="train", perturb="randomized_scene",
                              workers=cfg.workers, realism=cfg.realism, image_size=cfg.image_size, noise=cfg.noise,
-                             miss=cfg.miss, dispatch=cfg.dispatch)
+                             miss=cfg.miss, place_miss=cfg.place_miss, dispatch=cfg.dispatch)
         for suite in recipe.data:
             Collect(dataclasses.replace(base, out=str(layout.data(suite)), suite=suite))()
             if recipe.kind is Kind.DEMO_COUNT:
                 self._smaller_sets(suite)
         val = dataclasses.replace(base, episodes=max(1, cfg.val_episodes // 2), seed_family="validation", perturb=None,
-                                  noise=0.0, miss=0.0)
+                                  noise=0.0, miss=0.0, place_miss=0.0)
         Collect(dataclasses.replace(val, out=str(layout.val_data(recipe.suites[0])), suite=recipe.suites[0]))()
 
     def _smaller_sets(self, suite: str) -> None:

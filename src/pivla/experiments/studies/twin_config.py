@@ -76,6 +76,9 @@ class BenchmarkConfig:
     """DART noise of the demonstrations (the demo's)."""
     miss: float = 0.3
     """Share of demonstrations with a missed, recovered first grasp (the demo's)."""
+    place_miss: float = 0.5
+    """Share of ``stack`` demonstrations whose carry first goes 2-4 cm beside the block below and comes back
+    (docs/experiments.md#a-missed-placement-in-the-demonstrations)."""
     max_steps: int | None = None
     """Step limit per episode (default: each task's own)."""
     tasks: str | None = None
