@@ -7,9 +7,11 @@ never imports torch and ``pivla --help`` answers at once.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
 import sys
+import threading
 
 from pivla import __version__
 from pivla.cli.app import DEBUG_ENV, Command, Group, run
@@ -87,10 +89,25 @@ COMMANDS: dict[str, Command | Group] = {
 }
 
 
+# Seconds a killed command has for its cleanup before its worker processes and then itself are ended outright.
+SIGTERM_GRACE_S = 20.0
+
+
 def _exit_on_sigterm(signum: int, frame: object) -> None:
     """``kill`` ends a command the way Ctrl-C does: through its cleanup, so worker pools are terminated with it
-    (left running, a worker finishes its job for nobody) and stage clocks and partial results are saved."""
+    (left running, a worker finishes its job for nobody) and stage clocks and partial results are saved. A cleanup
+    that hangs (a signal landing inside a worker pool's bookkeeping can leave it waiting forever) is cut short after
+    ``SIGTERM_GRACE_S``: what was saved was written atomically, so nothing saved is lost."""
+    timer = threading.Timer(SIGTERM_GRACE_S, _end_now, args=(128 + signum,))
+    timer.daemon = True
+    timer.start()
     raise SystemExit(128 + signum)
+
+
+def _end_now(code: int) -> None:
+    for child in multiprocessing.active_children():
+        child.kill()
+    os._exit(code)
 
 
 def main(argv: list[str] | None = None) -> int:
