@@ -75,8 +75,9 @@ class CollectConfig:
     """Share of episodes whose first grasp is executed off the object, so the demonstrations show reopening
     and grasping again (labels stay clean)."""
     place_miss: float = 0.0
-    """tabletop: share of episodes whose first carry is executed to a point 2-4 cm beside where the object goes, so
-    the demonstrations show the held object brought back over its goal before it is set down (labels stay clean)."""
+    """tabletop: share of ``stack`` episodes whose carry is first executed to a point 2-4 cm beside the block below,
+    so the demonstrations show the held block brought back over it before it is set down (labels stay clean). Moves
+    are never missed: their target is a point no picture shows."""
     paraphrase: bool = False
     """Draw an instruction paraphrase per episode."""
     keep_failures: bool = False

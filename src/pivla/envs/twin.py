@@ -56,10 +56,15 @@ def get_task(suites: Mapping[str, list[T]], twin: str, suite: str, task: int | s
     raise ValueError(f"unknown task {task!r} in suite {suite!r}; known: {[t.name for t in tasks]}")
 
 
+def check_share(name: str, share: float) -> None:
+    """A share of episodes (a scripted expert's deliberate misses) lies in [0, 1]."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"{name} must be a share in [0, 1], got {share}")
+
+
 def check_misses(miss: float, retries: int) -> None:
     """A scripted expert's deliberate misses: a share of episodes, each needing a retry to recover from."""
-    if not 0.0 <= miss <= 1.0:
-        raise ValueError(f"miss must be a share in [0, 1], got {miss}")
+    check_share("miss", miss)
     if miss > 0 and retries < 1:
         raise ValueError("a deliberate miss needs retries >= 1 to recover from")
 

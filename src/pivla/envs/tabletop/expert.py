@@ -42,7 +42,7 @@ from pivla.arm.rotations import wrap_angle
 from pivla.envs.tabletop import tasks
 from pivla.envs.tabletop.env import ROT_SCALE, TRANS_SCALE, TabletopEnv
 from pivla.envs.tabletop.scene import HANDLE_HALF_DEPTH
-from pivla.envs.twin import check_misses, draw_miss
+from pivla.envs.twin import check_misses, check_share, draw_miss
 
 Target = Callable[[dict], np.ndarray]
 STALL = 0.0015  # m over three steps: a phase whose tool moves less than this has stalled
@@ -66,7 +66,7 @@ class ExpertConfig:
     retries: int = 2  # further grasps after one that did not hold
     miss: float = 0.0  # share of episodes whose first grasp is executed off the object (labels stay clean)
     miss_offset: tuple[float, float] = (0.02, 0.04)  # m, horizontal distance of a missed grasp from the object
-    place_miss: float = 0.0  # share of episodes whose first carry is executed towards a point beside the goal
+    place_miss: float = 0.0  # share of stacking episodes whose carry first goes to a point beside the block below
 
 
 class Expert:
@@ -77,8 +77,7 @@ class Expert:
     def __init__(self, config: ExpertConfig | None = None):
         self.config = config or ExpertConfig()
         check_misses(self.config.miss, self.config.retries)
-        if not 0.0 <= self.config.place_miss <= 1.0:
-            raise ValueError(f"place_miss must be a share in [0, 1], got {self.config.place_miss}")
+        check_share("place_miss", self.config.place_miss)
         self.env: TabletopEnv | None = None
         self._plan: Iterator[np.ndarray] | None = None
         self.phase = ""
