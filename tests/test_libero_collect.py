@@ -18,7 +18,8 @@ requires_libero = pytest.mark.skipif(
 
 @pytest.mark.parametrize("flags,message", [(["--perturb", "unseen_env"], "perturb"),
                                            (["--paraphrase"], "paraphrase"),
-                                           (["--realism", "servo"], "realism servo")])
+                                           (["--realism", "servo"], "realism servo"),
+                                           (["--place-miss", "0.5"], "place_miss")])
 def test_twin_only_options_are_refused(tmp_path, flags, message):
     with pytest.raises(SystemExit, match=message):
         main(["collect", "--env", "libero", "--suite", "libero_spatial", "--tasks", "0", "--episodes", "1",

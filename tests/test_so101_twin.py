@@ -120,6 +120,14 @@ def so101_data(tmp_path_factory):
     return out
 
 
+def test_a_placement_miss_is_refused_for_so101(tmp_path):
+    """Only the tabletop expert misses a placement on purpose: so101's collection names the option, writes nothing."""
+    with pytest.raises(SystemExit, match="place_miss"):
+        main(["collect", "--env", "so101", "--suite", "pick_place", "--tasks", "red_cube_on_pad", "--episodes", "1",
+              "--place-miss", "0.5", "--out", str(tmp_path / "data")])
+    assert not (tmp_path / "data").exists()
+
+
 def test_a_collected_dataset_has_the_so101_layout(so101_data):
     from pivla.data.hdf5 import read_env_meta
     from pivla.data.read import dataset_layout, read_dataset
