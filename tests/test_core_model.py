@@ -98,6 +98,29 @@ def test_each_term_reaches_only_its_heads(term, expected):
     assert _grads(m, loss) == expected
 
 
+def test_the_positive_only_actor_term_ignores_negative_advantages():
+    """actor_positive_only: a sample whose advantages are all negative moves nothing, and the loss is the signed
+    term's with the negative advantages set to zero; unified_loss passes the switch on."""
+    torch.manual_seed(0)
+    m = CMSModel(CFG, vocab_size=12)
+    b = fake_batch()
+    out = m(b)
+    adv = b["advantages"].clone()
+    adv[0] = -adv[0].abs() - 0.1
+    one_sided = actor_loss(out.continuous, m.log_sigma, b["actions"], adv, b["action_mask"], positive_only=True)
+    signed = actor_loss(out.continuous, m.log_sigma, b["actions"], adv.clamp_min(0), b["action_mask"])
+    assert torch.allclose(one_sided, signed)
+    assert not torch.allclose(one_sided, actor_loss(out.continuous, m.log_sigma, b["actions"], adv, b["action_mask"]))
+    (grad,) = torch.autograd.grad(one_sided, out.continuous, retain_graph=True)
+    assert grad[0].abs().sum() == 0 and grad[1:].abs().sum() > 0
+    cfg = dict(use_sp=False, use_recon=False, critic_coef=0.0)
+    b["advantages"] = adv
+    on, _ = unified_loss(m, out, b, LossConfig(actor_positive_only=True, **cfg))
+    off, _ = unified_loss(m, out, b, LossConfig(**cfg))
+    il, _ = unified_loss(m, out, b, LossConfig(use_rl=False, use_sp=False, use_recon=False))
+    assert torch.allclose(on - il, LossConfig().alpha * one_sided, atol=1e-6) and not torch.allclose(on, off)
+
+
 def test_auxiliary_terms_off_the_trunk_train_only_their_heads():
     """aux_on_trunk=False: L_RL (then the critic alone) and L_SP reach the value head and the state predictor, never
     the backbone or an action head, and the full loss's backbone gradient is imitation's exactly."""

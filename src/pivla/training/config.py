@@ -39,6 +39,9 @@ class LossConfig:
     """Train the continuous head."""
     use_rl: bool = True
     """Add the actor-critic term."""
+    actor_positive_only: bool = False
+    """The actor term (Eq. 10) weighs only actions with positive advantages; negative ones count zero
+    (docs/experiments.md#the-three-suite-policys-training-length)."""
     use_sp: bool = True
     """Add the latent state-prediction term."""
     use_recon: bool = True

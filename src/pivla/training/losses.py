@@ -38,7 +38,7 @@ def imitation_loss(logits: torch.Tensor, continuous: torch.Tensor, bins: torch.T
 
 
 def actor_loss(continuous: torch.Tensor, log_sigma: torch.Tensor, actions_taken: torch.Tensor,
-               advantages: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+               advantages: torch.Tensor, mask: torch.Tensor, positive_only: bool = False) -> torch.Tensor:
     """Eq. 10: -(1/K) sum_k log N(a_{t,k} | A_c[k], sigma^2) * A_hat_{t,k}.
 
     a_{t,k} are the actions actually taken in the data; a deterministic head would give log pi of its own
@@ -49,9 +49,13 @@ def actor_loss(continuous: torch.Tensor, log_sigma: torch.Tensor, actions_taken:
     to +-ADV_CLIP standard deviations, and the squared standardised residual is capped at RESIDUAL_CAP^2
     (no gradient pushes the mean further than RESIDUAL_CAP sigmas from an action), in the spirit of PPO's
     clipping.
+
+    ``positive_only`` zeroes the negative advantages: the term then only pulls towards actions that did better
+    than expected. With DART data the advantages describe the executed, noisy trajectory while the action
+    they weight is the expert's clean label, so a negative advantage pushes the head away from the label.
     """
     log_sigma = log_sigma.clamp(math.log(SIGMA_MIN), math.log(SIGMA_MAX))
-    advantages = advantages.detach().clamp(-ADV_CLIP, ADV_CLIP)
+    advantages = advantages.detach().clamp(0.0 if positive_only else -ADV_CLIP, ADV_CLIP)
     z2 = (((actions_taken - continuous.float()) / log_sigma.exp()) ** 2).clamp(max=RESIDUAL_CAP**2)
     logp = (-0.5 * z2 - log_sigma - 0.5 * math.log(2 * math.pi)).sum(-1)
     return -_masked_mean(logp * advantages, mask)
@@ -92,7 +96,7 @@ def unified_loss(model: CMSModel, out: CMSOutput, batch: dict[str, torch.Tensor]
     if cfg.use_rl and cfg.alpha > 0:
         # the actor moves the continuous head, and through it the trunk: it is off when the trunk is imitation's
         l_actor = actor_loss(out.continuous, model.log_sigma, batch["actions"], batch["advantages"],
-                             batch["action_mask"]) if cfg.aux_on_trunk else None
+                             batch["action_mask"], cfg.actor_positive_only) if cfg.aux_on_trunk else None
         l_critic = critic_loss(out.values, out.value_now, batch["returns"], batch["value_mask"])
         l_rl = cfg.critic_coef * l_critic if l_actor is None else l_actor + cfg.critic_coef * l_critic
         logs.update(rl_critic=l_critic.detach(), **({} if l_actor is None else {"rl_actor": l_actor.detach()}))
