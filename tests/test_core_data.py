@@ -8,6 +8,7 @@ from pivla.data.normalize import ActionStats
 from pivla.data.read import read_dataset
 from pivla.data.samples import (
     ChunkDataset,
+    augment_shift,
     fit_norm_stats,
     gae,
     image_store,
@@ -120,6 +121,15 @@ def test_task_balance_draws_tasks_equally_and_batches_are_a_function_of_the_step
     assert not np.array_equal(batch(7), batch(8))
     with pytest.raises(ValueError, match="task balance"):
         task_balanced_weights(tasks, lengths, 1.5)
+
+
+def test_the_shift_moves_only_the_named_cameras():
+    images = np.random.default_rng(0).integers(0, 256, (6, 2, 16, 16, 3), dtype=np.uint8)
+    out = augment_shift(images, np.random.default_rng(1), 3, cameras=(0,))
+    assert np.array_equal(out[:, 1], images[:, 1])  # the wrist view as it was
+    alone = augment_shift(images[:, [0]], np.random.default_rng(1), 3)[:, 0]
+    assert np.array_equal(out[:, 0], alone) and not np.array_equal(out[:, 0], images[:, 0])
+    assert not np.array_equal(augment_shift(images, np.random.default_rng(1), 3)[:, 1], images[:, 1])
 
 
 def test_chunk_targets_padding_mask_and_next_obs():

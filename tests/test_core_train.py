@@ -210,6 +210,14 @@ def test_task_balance_draws_a_short_task_as_often_as_a_long_one(tmp_path):
         Trainer(tiny_train_config(tmp_path / "d", tmp_path / "bad", val_fraction=0.0, task_balance=1.5))
 
 
+def test_shift_cameras_are_named_by_key_and_an_unknown_one_is_refused(tmp_path, synthetic_data):
+    t = Trainer(tiny_train_config(synthetic_data, tmp_path / "a", augment_shift_cameras=("agentview_rgb",)))
+    assert t.shift_cameras == (0,)
+    t.train_step()
+    with pytest.raises(ValueError, match="wrist_rgb: not among the model's cameras"):
+        Trainer(tiny_train_config(synthetic_data, tmp_path / "b", augment_shift_cameras=("wrist_rgb",)))
+
+
 def test_bad_observations_and_corrupt_model_get_named_errors(tmp_path, synthetic_data):
     run = train(tiny_train_config(synthetic_data, tmp_path / "run", steps=2, ckpt_every=2, eval_every=2))
     policy = load_policy(run, device="cpu")

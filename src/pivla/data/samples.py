@@ -275,10 +275,16 @@ class ChunkDataset:
         }
 
 
-def augment_shift(images: np.ndarray, rng: np.random.Generator, pad: int) -> np.ndarray:
-    """Random-shift augmentation (pad by replication, crop back), one shift per image; robust to camera jitter."""
+def augment_shift(images: np.ndarray, rng: np.random.Generator, pad: int,
+                  cameras: tuple[int, ...] | None = None) -> np.ndarray:
+    """Random-shift augmentation (pad by replication, crop back), one shift per image; robust to camera jitter.
+    ``images`` (B, cameras, H, W, C); ``cameras``: the indices shifted (None: all), the others left as they are."""
     if pad <= 0:
         return images
+    if cameras is not None:
+        out = images.copy()
+        out[:, list(cameras)] = augment_shift(images[:, list(cameras)], rng, pad)
+        return out
     *lead, H, W, C = images.shape
     flat = images.reshape(-1, H, W, C)
     padded = np.pad(flat, ((0, 0), (pad, pad), (pad, pad), (0, 0)), mode="edge")

@@ -97,6 +97,10 @@ class TrainConfig:
     """Share of episodes held out for validation loss (per task, whole episodes)."""
     augment_pad: int = 4
     """Random-shift augmentation in pixels."""
+    augment_shift_cameras: tuple[str, ...] = ()
+    """The cameras (dataset keys) the random shift moves; empty: every camera. A wrist camera rides with the
+    gripper and sees where the grasp will land, so shifting it teaches nothing about jitter and blurs that
+    (docs/experiments.md#shift-augmentation-and-near-misses)."""
     augment_color: float = 0.2
     """Photometric jitter strength (0: off)."""
     log_every: int = 25

@@ -158,6 +158,18 @@ def images_on_disk(cfg: TrainConfig, frames: int, local_processes: int = 1) -> b
     return size > os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 3
 
 
+def shifted_cameras(cfg: TrainConfig) -> tuple[int, ...] | None:
+    """The indices of ``cfg.augment_shift_cameras`` among the model's cameras (None: all), refused at once when
+    one is not a camera the model reads."""
+    if not cfg.augment_shift_cameras:
+        return None
+    unknown = [c for c in cfg.augment_shift_cameras if c not in cfg.model.cameras]
+    if unknown:
+        raise ValueError(f"--augment-shift-cameras {' '.join(unknown)}: not among the model's cameras "
+                         f"{', '.join(cfg.model.cameras)}")
+    return tuple(cfg.model.cameras.index(c) for c in cfg.augment_shift_cameras)
+
+
 class Trainer:
     """Holds the state of one run; ``run()`` trains to ``cfg.steps`` and returns the run directory."""
 
@@ -168,6 +180,7 @@ class Trainer:
         # the model's cameras, proprioception and action dimension: the dataset's unless the config names them
         layout = training_layout(cfg, stats)
         cfg = self.cfg = dataclasses.replace(cfg, model=resolve_inputs(cfg.model, layout, cfg.data))
+        self.shift_cameras = shifted_cameras(cfg)
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)
         self.acc = _accelerator(cfg)
@@ -313,8 +326,8 @@ class Trainer:
         rng = np.random.default_rng([cfg.seed + seed_offset, step, rank])
         batch = collate([dataset.sample(int(i), rng) for i in idx])
         if augment:
-            batch["images"] = augment_color(augment_shift(batch["images"], rng, cfg.augment_pad), rng,
-                                            cfg.augment_color)
+            shifted = augment_shift(batch["images"], rng, cfg.augment_pad, self.shift_cameras)
+            batch["images"] = augment_color(shifted, rng, cfg.augment_color)
         return batch_to_tensors(batch, self.device)
 
     # -- value refresh for the RL term -------------------------------------------------------------------
