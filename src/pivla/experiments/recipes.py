@@ -62,8 +62,8 @@ class Kind(StrEnum):
 class Recipe:
     """A policy of a study: its name (its directory, so runs on disk keep it), its kind, the suites it trains on
     and those of its validation rollouts, its loss and head variant (``TRAIN_VARIANTS``), and for a
-    ``DEMO_COUNT`` policy the demonstrations per task it keeps, and how evenly its batches draw the tasks
-    (``TrainConfig.task_balance``)."""
+    ``DEMO_COUNT`` policy the demonstrations per task it keeps, how evenly its batches draw the tasks
+    (``TrainConfig.task_balance``) and the cameras its random shift moves (``TrainConfig.augment_shift_cameras``)."""
 
     name: str
     kind: Kind
@@ -72,6 +72,7 @@ class Recipe:
     variant: str = "full"
     demos: int | None = None
     task_balance: float = 0.0
+    augment_shift_cameras: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.variant not in TRAIN_VARIANTS:
