@@ -114,12 +114,12 @@ def test_every_decision_is_taken_on_validation_seeds_and_the_plan_tests_each_tab
     assert {c[0] for c in calls} == {"test"} and {c[1] for c in calls} == {"round2", "seen"}
 
 
-def test_the_other_suites_policy_draws_its_tasks_equally_and_shifts_only_its_agent_view(tmp_path):
+def test_the_other_suites_policy_balances_its_tasks_shifts_its_agent_view_and_averages_its_weights(tmp_path):
     b = benchmark.Benchmark(BenchmarkConfig(out=str(tmp_path)))
     others = b._train_config("others", 0)
     assert others.task_balance == 1.0 and len(others.extra_data) == 2  # long, then drawer and stack
-    assert others.augment_shift_cameras == ("agentview_rgb",)  # the wrist view unshifted
-    assert b._train_config("main", 0).augment_shift_cameras == ()
+    assert others.augment_shift_cameras == ("agentview_rgb",) and others.ema_decay == 0.999  # the wrist view unshifted
+    assert b._train_config("main", 0).augment_shift_cameras == () and b._train_config("main", 0).ema_decay == 0.0
     assert b._train_config("main", 0).task_balance == 0.0 and b._train_config("abl_no_rl", 0).task_balance == 0.0
 
 

@@ -63,7 +63,8 @@ class Recipe:
     """A policy of a study: its name (its directory, so runs on disk keep it), its kind, the suites it trains on
     and those of its validation rollouts, its loss and head variant (``TRAIN_VARIANTS``), and for a
     ``DEMO_COUNT`` policy the demonstrations per task it keeps, how evenly its batches draw the tasks
-    (``TrainConfig.task_balance``) and the cameras its random shift moves (``TrainConfig.augment_shift_cameras``)."""
+    (``TrainConfig.task_balance``), the cameras its random shift moves (``TrainConfig.augment_shift_cameras``) and
+    the decay of the weight average it deploys (``TrainConfig.ema_decay``)."""
 
     name: str
     kind: Kind
@@ -73,6 +74,7 @@ class Recipe:
     demos: int | None = None
     task_balance: float = 0.0
     augment_shift_cameras: tuple[str, ...] = ()
+    ema_decay: float = 0.0
 
     def __post_init__(self) -> None:
         if self.variant not in TRAIN_VARIANTS:

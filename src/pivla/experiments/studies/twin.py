@@ -167,7 +167,7 @@ class Benchmark:
             dirs += [str(layout.train_rollouts(seed, c.name)) for c in ROLLOUT_CELLS]
         return dataclasses.replace(tc, data=dirs[0], extra_data=tuple(dirs[1:]), val_fraction=cfg.val_fraction,
                                    task_balance=recipe.task_balance,
-                                   augment_shift_cameras=recipe.augment_shift_cameras)
+                                   augment_shift_cameras=recipe.augment_shift_cameras, ema_decay=recipe.ema_decay)
 
     def _ready(self, *names: str) -> None:
         """Collect, then train every seed of these policies (each a Ray task, all at once, with --backend ray),
