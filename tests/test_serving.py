@@ -466,6 +466,28 @@ def test_a_latent_that_reads_the_proprio(tmp_path):
                                    local.encode_batch([obs, local_obs(observation(4))]), atol=1e-5)
 
 
+def test_an_ensemble_of_runs_is_served_with_its_first_members_encoder(tmp_path):
+    """An ensemble (``pivla ensemble-runs``) encodes with its first member's target encoder: the server hands that
+    graph out, and what it answers equals the local ensemble."""
+    runs = [write_run(tmp_path / f"run{i}") for i in (0, 1)]
+    ensemble = ck.write_run_ensemble(runs, tmp_path / "ens")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        local = load_policy(ensemble, device="cpu")
+    finally:
+        torch.set_num_threads(threads)
+    with running_server(ensemble, tmp_path) as (port, _), \
+            RemotePolicy(f"127.0.0.1:{port}", api_key=KEY, outputs=None) as remote:
+        assert remote.encoder_runtime == "onnx" and remote.spec == local.spec
+        obs = observation(6)
+        got, expected = remote.infer(obs), local.infer(local_obs(obs))
+        assert set(got) == set(expected)
+        for k, v in expected.items():
+            np.testing.assert_allclose(got[k], v, atol=1e-6, err_msg=k)
+        np.testing.assert_allclose(remote.encode(obs), local.encode(local_obs(obs)), atol=1e-6)
+
+
 def test_a_served_policy_reads_the_actions_in_flight_and_names_bad_ones(tmp_path):
     """The spec tells the client how many actions in flight the policy reads; the remote answer to an observation
     with them is the local one, and a prefix the policy cannot read gets an error frame naming it."""

@@ -8,6 +8,7 @@ the statistics saved in the run.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -37,7 +38,7 @@ from pivla.training import checkpoint as ck
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Calibration", "Policy", "load_policy"]
+__all__ = ["Calibration", "Policy", "RunEnsemble", "load_policy"]
 
 
 # -- output steps ----------------------------------------------------------------------------------------------
@@ -252,14 +253,92 @@ class Policy:
         return self.stats.action.unnormalize(normalized)
 
 
+class RunEnsemble:
+    """Several trained runs of one recipe as one policy (the ``ChunkPolicy`` and ``BatchPolicy`` contracts).
+
+    Training runs of the same recipe that differ only in their seed fail on different episodes; the average of
+    their chunks fails on fewer (docs/experiments.md#an-ensemble-of-training-runs). Each output is the members'
+    mean, in the first member's normalisation: the actions of both heads (a binary gripper's as a soft vote,
+    thresholded once), the values; ``u_act`` is Eq. 13 on the averaged heads. AURD's latents and ``encode`` are the
+    first member's (``lead``): with every member's side by side, AURD paused its way out of 10 `long` points on
+    validation. There is no ``discrete_probs``: the members' bins differ.
+    """
+
+    def __init__(self, members: Sequence[Policy], run_dir: Path | None = None, calibration: Calibration | None = None):
+        if len(members) < 2:
+            raise ValueError(f"an ensemble needs at least two policies, got {len(members)}")
+        lead = members[0]
+        for i, m in enumerate(members[1:], 1):
+            if dataclasses.replace(m.spec, latent_dim=0) != dataclasses.replace(lead.spec, latent_dim=0):
+                raise ValueError(f"member {i} reads or returns other things than member 0: {m.spec} against "
+                                 f"{lead.spec}")
+            if (m.stats.target is None) != (lead.stats.target is None):
+                raise ValueError(f"member {i} and member 0 differ in relative_actions")
+        self.members, self.lead = list(members), lead
+        self.run_dir, self.calibration = run_dir, calibration
+        self.stats = lead.stats  # the normalisation of the ensemble's outputs (and of to_actions)
+        self.both_heads = all(m.both_heads for m in members)
+        self.gripper_head = lead.gripper_head
+        self.spec = lead.spec
+
+    @property
+    def encoder_runtime(self) -> str:
+        return self.lead.encoder_runtime
+
+    def _mean(self, outs: Sequence[Mapping[str, np.ndarray]], key: str, head_space: bool) -> np.ndarray:
+        """The members' ``key`` (normalised actions) averaged in the first member's normalisation: the heads'
+        targets (``head_space``: the offsets of a relative policy) or the exchanged actions."""
+        def space(stats: NormStats) -> ActionStats:
+            return (stats.target or stats.action) if head_space else stats.action
+
+        into = space(self.stats)
+        return np.mean([into.renormalize(o[key], space(m.stats)) for o, m in zip(outs, self.members)], axis=0)
+
+    def infer_batch(self, obs_list: Sequence[Mapping[str, Any]]) -> dict[str, np.ndarray]:
+        outs = [m.infer_batch(obs_list) for m in self.members]
+        cont = np.clip(self._mean(outs, "continuous_normalized", True), -1, 1)
+        deq = np.clip(self._mean(outs, "dequantized", True), -1, 1)
+        normalized = np.clip(self._mean(outs, "actions_normalized", False), -1, 1)
+        return {
+            "actions_normalized": normalized, "actions": self.stats.action.unnormalize(normalized),
+            "continuous_normalized": cont, "dequantized": deq,
+            "u_act": action_uncertainty(cont, deq) if self.both_heads else np.zeros(cont.shape[:2]),
+            "latents": outs[0]["latents"],
+            "values": np.mean([o["values"] for o in outs], axis=0),
+            "value_now": np.mean([o["value_now"] for o in outs], axis=0),
+        }
+
+    def infer(self, obs: Mapping[str, Any]) -> dict[str, np.ndarray]:
+        """``Policy.infer``'s outputs, averaged over the members (see the class), without ``discrete_probs``."""
+        return {k: v[0] for k, v in self.infer_batch([obs]).items()}
+
+    def encode_batch(self, obs_list: Sequence[Mapping[str, Any]]) -> np.ndarray:
+        return self.lead.encode_batch(obs_list)
+
+    def encode(self, obs: Mapping[str, Any]) -> np.ndarray:
+        """The first member's Enc(o) (the units of ``latents``)."""
+        return self.lead.encode(obs)
+
+    def to_actions(self, normalized: np.ndarray) -> np.ndarray:
+        return self.stats.action.unnormalize(normalized)
+
+
 def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0, gripper_head: str | None = None,
-                encoder_runtime: str = "auto") -> Policy:
-    """Load a run directory written by ``pivla train`` (safetensors + JSON only). ``gripper_head``: which head
-    drives the gripper (default: the discrete one when both were trained, see ``Policy``); ``encoder_runtime``:
-    where the target encoder runs (``auto``: ONNX Runtime on a CPU when possible, see ``Policy``)."""
+                encoder_runtime: str = "auto") -> Policy | RunEnsemble:
+    """Load a run directory written by ``pivla train`` (safetensors + JSON only), or an ensemble of runs written
+    by ``pivla ensemble-runs``. ``gripper_head``: which head drives the gripper (default: the discrete one when both
+    were trained, see ``Policy``); ``encoder_runtime``: where the target encoder runs (``auto``: ONNX Runtime on
+    a CPU when possible, see ``Policy``)."""
     run_dir = Path(run_dir)
     if threads > 0:
         torch.set_num_threads(threads)
+    calib = None
+    if (run_dir / ck.CALIBRATION_FILE).exists():
+        calib = Calibration(**ck.read_json(run_dir / ck.CALIBRATION_FILE))
+    members = ck.run_ensemble_members(run_dir)
+    if members is not None:
+        return RunEnsemble([load_policy(m, device, 0, gripper_head, encoder_runtime) for m in members],
+                              run_dir, calib)
     cfg = ck.read_run_config(run_dir)
     stats = NormStats.from_dict(ck.read_json(run_dir / ck.STATS_FILE))
     text = load_text_tokenizer(ck.read_json(run_dir / ck.TOKENIZER_FILE))
@@ -267,9 +346,6 @@ def load_policy(run_dir: str | Path, device: str = "auto", threads: int = 0, gri
     model = CMSModel(cfg.model, len(text.vocab))
     state = ck.load_tensors(run_dir / ck.MODEL_FILE)
     model.load_checkpoint_state(state, str(run_dir / ck.MODEL_FILE))
-    calib = None
-    if (run_dir / ck.CALIBRATION_FILE).exists():
-        calib = Calibration(**ck.read_json(run_dir / ck.CALIBRATION_FILE))
     head = "continuous" if cfg.loss.use_continuous else "discrete"
     both = cfg.loss.use_continuous and cfg.loss.use_discrete
     return Policy(model.to(dev), stats, text, run_dir, calib, dev, action_head=head, both_heads=both,

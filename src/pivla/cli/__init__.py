@@ -34,6 +34,7 @@ COMMANDS: dict[str, Command | Group] = {
                     "the main job on the twin: collect, train, calibrate, evaluate, report"),
     "collect": Command("pivla.cli.data", "collect", "expert demonstrations, or policy rollouts with --policy"),
     "train": Command("pivla.cli.train", "train", "train a CMS policy (the validated recipe unless told otherwise)"),
+    "ensemble-runs": Command("pivla.cli.train", "ensemble_runs", "one policy from several training runs of a recipe"),
     "calibrate": Command("pivla.cli.evaluate", "calibrate", "AURD's thresholds from validation data"),
     "eval": Command("pivla.cli.evaluate", "evaluate", "evaluate a policy with an executor on a task suite"),
     "report": Command("pivla.cli.evaluate", "report", "report.md with tables, paired statistics and plots"),

@@ -1,4 +1,4 @@
-"""``pivla train``, ``pivla info``, ``pivla merge-lora`` and ``pivla convert-openvla``."""
+"""``pivla train``, ``pivla ensemble-runs``, ``pivla info``, ``pivla merge-lora`` and ``pivla convert-openvla``."""
 
 from __future__ import annotations
 
@@ -71,20 +71,25 @@ def info(cfg: InfoConfig) -> int:
 
     run = Path(cfg.policy)
     policy = load_policy(run, device="cpu", encoder_runtime="torch")
-    status = read_json(run / ck.STATUS_FILE) if (run / ck.STATUS_FILE).exists() else {}
+    members = getattr(policy, "members", [policy])
+    lead = ck.run_ensemble_members(run)[0] if len(members) > 1 else run  # an ensemble shows its first member's run
+    status = read_json(lead / ck.STATUS_FILE) if (lead / ck.STATUS_FILE).exists() else {}
+    counts = [m.model.parameter_counts() for m in members]
     data = {
         "run": str(run),
-        "config": read_json(run / ck.CONFIG_FILE),
+        "members": len(members),
+        "config": read_json(lead / ck.CONFIG_FILE),
         "spec": policy.spec.to_dict(),
-        "parameters": policy.model.parameter_counts(),
-        "vocab_size": len(policy.text.vocab),
+        "parameters": {k: sum(c[k] for c in counts) for k in counts[0]},
+        "vocab_size": len(members[0].text.vocab),
         "status": status,
         "calibration": vars(policy.calibration) if policy.calibration else None,
     }
     if cfg.json:
         print(json.dumps(data, indent=2))
         return 0
-    print(f"run: {run}")
+    ensemble = f" (an ensemble of {len(members)} runs; the first one's config)" if len(members) > 1 else ""
+    print(f"run: {run}{ensemble}")
     print(f"training: step {status.get('step', '?')}/{status.get('steps', '?')} done={status.get('done', '?')} "
           f"elapsed={status.get('elapsed_s', '?')}s")
     if status.get("last"):
@@ -94,6 +99,26 @@ def info(cfg: InfoConfig) -> int:
     print(f"calibration: {data['calibration']}")
     print("config:")
     print(json.dumps(data["config"], indent=2))
+    return 0
+
+
+@dataclass
+class RunEnsembleConfig:
+    """Runs of one recipe (trained with different --seed) to serve, evaluate and calibrate as one policy."""
+
+    runs: list[str]
+    """Run directories written by pivla train, two or more; their deployed files are copied."""
+    out: str
+    """Directory to write (must not exist); give it to --policy like a run. Calibrate it for AURD."""
+
+
+def ensemble_runs(cfg: RunEnsembleConfig) -> int:
+    from pivla.policy import load_policy
+    from pivla.training.checkpoint import write_run_ensemble
+
+    out = write_run_ensemble(cfg.runs, cfg.out)
+    policy = load_policy(out, device="cpu", encoder_runtime="torch")  # refuses members that do not fit together
+    print(f"ensemble of {len(policy.members)} runs saved to {out}; calibrate it before AURD runs it")
     return 0
 
 

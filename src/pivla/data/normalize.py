@@ -46,6 +46,21 @@ class ActionStats:
             out[..., self.gripper_dim] = np.where(np.asarray(actions)[..., self.gripper_dim] > 0, 1.0, -1.0)
         return out.astype(np.float32)
 
+    def renormalize(self, actions: np.ndarray, source: ActionStats) -> np.ndarray:
+        """Actions normalised by ``source`` in this normalisation, unclipped. A binary gripper's values pass
+        through unthresholded (both map it to -1 / +1), so that an average of several policies' grippers is a
+        soft vote."""
+        if source.gripper_dim != self.gripper_dim:
+            raise ValueError(f"gripper dimension {source.gripper_dim} against {self.gripper_dim}: not the same actions")
+        (lo_s, hi_s), (lo, hi) = source._bounds(), self._bounds()
+        if lo_s.shape != lo.shape:
+            raise ValueError(f"{lo_s.size}-D actions against {lo.size}-D: not the same actions")
+        a = np.asarray(actions, np.float32)
+        out = 2.0 * ((a + 1.0) / 2.0 * (hi_s - lo_s) + lo_s - lo) / (hi - lo) - 1.0
+        if self.gripper_dim is not None:
+            out[..., self.gripper_dim] = a[..., self.gripper_dim]
+        return out.astype(np.float32)
+
     def unnormalize(self, actions: np.ndarray) -> np.ndarray:
         """[-1, 1] -> physical actions; a binary gripper is thresholded to exactly -1 or +1."""
         lo, hi = self._bounds()

@@ -149,6 +149,7 @@ def target_encoder_graph(policy: Any, spec: PolicySpec) -> tuple[bytes, int] | N
 
     The graph the policy encodes with is handed out, else (a policy on a GPU) one is exported; either way a
     client's encoding of probe observations must agree with ``policy.encode`` before it is."""
+    policy = getattr(policy, "lead", policy)  # an ensemble of runs encodes with its first member's encoder
     target = policy.model.target
     if target.proprio > 0:
         log.info("the target latent reads the proprio too: clients encode on the server")

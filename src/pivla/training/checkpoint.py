@@ -25,6 +25,8 @@ TOKENIZER_FILE = "tokenizer.json"
 STATUS_FILE = "status.json"
 CALIBRATION_FILE = "calibration.json"
 AVERAGE_FILE = "average.safetensors"  # a checkpoint's weight average (--ema-decay)
+RUN_ENSEMBLE_FILE = "run_ensemble.json"  # in a directory that ensembles several runs (``write_run_ensemble``)
+DEPLOYED_FILES = (MODEL_FILE, CONFIG_FILE, STATS_FILE, TOKENIZER_FILE)  # what ``load_policy`` needs of a run
 
 
 # backbone fields whose default changed, with the value every run written before they existed used
@@ -48,6 +50,47 @@ def write_calibration(run_dir: str | Path, calibration: dict, stats: dict | None
     atomic_write_json(Path(run_dir) / CALIBRATION_FILE, calibration)
     if stats is not None:
         atomic_write_json(Path(run_dir) / "calibration_stats.json", stats)
+
+
+def write_run_ensemble(runs: list[str | Path], out: str | Path) -> Path:
+    """A directory that ``load_policy`` reads as the ensemble of ``runs`` (``pivla ensemble-runs``): each run's
+    deployed files copied to ``members/<i>/`` (so the directory moves and serves on its own) and
+    ``run_ensemble.json`` naming them. Written atomically; an existing ``out`` is refused."""
+    out = Path(out)
+    if len(runs) < 2:
+        raise ValueError(f"an ensemble needs at least two runs, got {len(runs)}")
+    if out.exists():
+        raise ValueError(f"{out} exists; choose a new directory")
+    for run in runs:
+        if (Path(run) / RUN_ENSEMBLE_FILE).exists():
+            raise ValueError(f"{run} is an ensemble itself; name its members instead")
+        missing = [f for f in DEPLOYED_FILES if not (Path(run) / f).is_file()]
+        if missing:
+            raise ValueError(f"{run}: not a trained run directory (missing {', '.join(missing)})")
+    with atomic_dir(out) as tmp:
+        members = []
+        for i, run in enumerate(runs):
+            member = Path("members") / str(i)
+            (tmp / member).mkdir(parents=True)
+            for f in (*DEPLOYED_FILES, STATUS_FILE):
+                if (Path(run) / f).is_file():
+                    shutil.copy2(Path(run) / f, tmp / member / f)
+            members.append(str(member))
+        sources = [str(Path(r).resolve()) for r in runs]
+        atomic_write_json(tmp / RUN_ENSEMBLE_FILE, {"members": members, "sources": sources})
+    return out
+
+
+def run_ensemble_members(run_dir: str | Path) -> list[Path] | None:
+    """The member run directories of an ensemble directory, or None for a single run."""
+    path = Path(run_dir) / RUN_ENSEMBLE_FILE
+    if not path.exists():
+        return None
+    data = read_json(path)
+    members = data.get("members") if isinstance(data, dict) else None
+    if not isinstance(members, list) or len(members) < 2 or not all(isinstance(m, str) for m in members):
+        raise ValueError(f"{path}: 'members' must list at least two run directories")
+    return [Path(run_dir) / m for m in members]
 
 
 def save_tensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None) -> None:
