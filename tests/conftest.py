@@ -15,6 +15,22 @@ def synthetic_data(tmp_path_factory):
                                   failures=1)
 
 
+def twin_pick_place_data(out, episodes: int):
+    """Expert demonstrations of the twin's first two ``pick_place`` tasks at 32 px, a file per task in ``out``."""
+    import functools
+
+    from pivla.data.hdf5 import write_episodes
+    from pivla.envs.rollout import collect_episodes
+    from pivla.envs.tabletop import make_env
+    from pivla.envs.tabletop.expert import make_expert
+
+    for task in (0, 1):
+        eps = collect_episodes(functools.partial(make_env, "pick_place", task, image_size=32), make_expert(0.1),
+                               episodes, seed=task)
+        write_episodes(out / f"task{task}.hdf5", eps)
+    return out
+
+
 def tiny_train_config(data, out, **overrides):
     from pivla.model.config import BackboneConfig, ModelConfig
     from pivla.training.config import TrainConfig

@@ -1,7 +1,6 @@
 """Evaluation end to end on the twin with a tiny trained policy: results.json, workers, report, collect --policy."""
 
 import dataclasses
-import functools
 import json
 import os
 
@@ -11,14 +10,11 @@ from pivla.control.calibrate import calibrate
 from pivla.control.executors import executor_config
 from pivla.data.hdf5 import write_episodes
 from pivla.data.read import read_dataset
-from pivla.envs.rollout import collect_episodes
-from pivla.envs.tabletop import make_env
-from pivla.envs.tabletop.expert import make_expert
 from pivla.evaluation.runner import EvalConfig, auroc, evaluate
 from pivla.policy import load_policy
 from pivla.training.checkpoint import write_calibration
 from pivla.training.trainer import train
-from tests.conftest import tiny_train_config
+from tests.conftest import tiny_train_config, twin_pick_place_data
 
 KEYS = {"success_rate", "ci95", "episodes", "per_task", "executor", "mean_executed_horizon", "replans", "prunes",
         "pauses", "control_hz", "failure_prediction", "failure_stages"}
@@ -27,10 +23,7 @@ KEYS = {"success_rate", "ci95", "episodes", "per_task", "executor", "mean_execut
 @pytest.fixture(scope="module")
 def tiny_policy(tmp_path_factory):
     root = tmp_path_factory.mktemp("evalpolicy")
-    for task in (0, 1):
-        eps = collect_episodes(functools.partial(make_env, "pick_place", task, image_size=32), make_expert(0.1), 2,
-                               seed=task)
-        write_episodes(root / "data" / f"task{task}.hdf5", eps)
+    twin_pick_place_data(root / "data", 2)
     run = train(tiny_train_config(root / "data", root / "run", steps=10, val_fraction=0.0))
     calib, stats = calibrate(load_policy(run, device="cpu"), read_dataset(root / "data"), source="test")
     write_calibration(run, vars(calib), stats)

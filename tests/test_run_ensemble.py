@@ -1,8 +1,8 @@
 """An ensemble of training runs as one policy: ``pivla ensemble-runs``, its averaged outputs, AURD on it, bad input."""
 
 import dataclasses
-import functools
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -11,27 +11,20 @@ from pivla.cli import main
 from pivla.control.calibrate import calibrate
 from pivla.control.contract import BatchPolicy
 from pivla.control.executors import executor_config
-from pivla.data.hdf5 import write_episodes
 from pivla.data.normalize import ActionStats
 from pivla.data.read import read_dataset
-from pivla.envs.rollout import collect_episodes
-from pivla.envs.tabletop import make_env
-from pivla.envs.tabletop.expert import make_expert
 from pivla.evaluation.runner import EvalConfig, evaluate
 from pivla.policy import Policy, RunEnsemble, load_policy
-from pivla.training.checkpoint import RUN_ENSEMBLE_FILE, write_calibration, write_run_ensemble
+from pivla.training.checkpoint import CONFIG_FILE, RUN_ENSEMBLE_FILE, write_calibration, write_run_ensemble
 from pivla.training.trainer import train
-from tests.conftest import tiny_train_config
+from tests.conftest import tiny_train_config, twin_pick_place_data
 
 
 @pytest.fixture(scope="module")
 def two_runs(tmp_path_factory):
     """Two tiny twin policies of one recipe, seeds 0 and 1 (different held-out episodes, so different statistics)."""
     root = tmp_path_factory.mktemp("ensemble")
-    for task in (0, 1):
-        eps = collect_episodes(functools.partial(make_env, "pick_place", task, image_size=32), make_expert(0.1), 3,
-                               seed=task)
-        write_episodes(root / "data" / f"task{task}.hdf5", eps)
+    twin_pick_place_data(root / "data", 3)
     return [train(tiny_train_config(root / "data", root / f"run{s}", steps=6, seed=s, val_fraction=0.34))
             for s in (0, 1)]
 
@@ -136,6 +129,13 @@ def test_bad_ensembles_are_refused_by_name(two_runs, tmp_path):
     (out / RUN_ENSEMBLE_FILE).write_text("{not json")
     with pytest.raises(ValueError, match=RUN_ENSEMBLE_FILE):
         load_policy(out, device="cpu")
+    other = shutil.copytree(two_runs[1], tmp_path / "other")  # another camera name: the same weights, another spec
+    config = json.loads((other / CONFIG_FILE).read_text())
+    config["model"]["cameras"][0] = "front_rgb"
+    (other / CONFIG_FILE).write_text(json.dumps(config))
+    with pytest.raises(SystemExit, match="member 1"):
+        main(["ensemble-runs", "--runs", str(two_runs[0]), str(other), "--out", str(tmp_path / "unfit")])
+    assert not (tmp_path / "unfit").exists()  # refused before the directory took its place
     a, b = (load_policy(r, device="cpu") for r in two_runs)
     b.spec = dataclasses.replace(b.spec, chunk=b.spec.chunk - 1)
     with pytest.raises(ValueError, match="member 1"):

@@ -105,6 +105,16 @@ def local(run_dir):
     torch.set_num_threads(threads)
 
 
+def load_one_thread(run: Path, **options):
+    """``load_policy`` with one torch thread, as the server loads it, so that both export the same target graph."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return load_policy(run, device="cpu", **options)
+    finally:
+        torch.set_num_threads(threads)
+
+
 @contextlib.contextmanager
 def running_server(run_dir: Path, directory: Path, **options: float) -> Iterator[tuple[int, subprocess.Popen]]:
     """(port, process) of a server with the API key KEY, serving ``run_dir`` with ``options`` of ServeConfig and
@@ -444,12 +454,7 @@ def test_a_latent_that_reads_the_proprio(tmp_path):
     """A target latent with the proprio: locally the pictures' part runs on ONNX Runtime and the proprio is
     appended, as in PyTorch; a server hands out no graph, and a client sends the proprio keys to encode."""
     run = write_run(tmp_path / "run", target_proprio=1.0)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        local, eager = load_policy(run, device="cpu"), load_policy(run, device="cpu", encoder_runtime="torch")
-    finally:
-        torch.set_num_threads(threads)
+    local, eager = load_one_thread(run), load_one_thread(run, encoder_runtime="torch")
     assert local.encoder_runtime == "onnx" and local.spec.target_proprio
     obs = local_obs(observation(3))
     np.testing.assert_allclose(local.encode(obs), eager.encode(obs), atol=1e-5)
@@ -471,12 +476,7 @@ def test_an_ensemble_of_runs_is_served_with_its_first_members_encoder(tmp_path):
     graph out, and what it answers equals the local ensemble."""
     runs = [write_run(tmp_path / f"run{i}") for i in (0, 1)]
     ensemble = ck.write_run_ensemble(runs, tmp_path / "ens")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        local = load_policy(ensemble, device="cpu")
-    finally:
-        torch.set_num_threads(threads)
+    local = load_one_thread(ensemble)
     with running_server(ensemble, tmp_path) as (port, _), \
             RemotePolicy(f"127.0.0.1:{port}", api_key=KEY, outputs=None) as remote:
         assert remote.encoder_runtime == "onnx" and remote.spec == local.spec
@@ -492,12 +492,7 @@ def test_a_served_policy_reads_the_actions_in_flight_and_names_bad_ones(tmp_path
     """The spec tells the client how many actions in flight the policy reads; the remote answer to an observation
     with them is the local one, and a prefix the policy cannot read gets an error frame naming it."""
     run = write_run(tmp_path / "run", action_prefix=2)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        local = load_policy(run, device="cpu")
-    finally:
-        torch.set_num_threads(threads)
+    local = load_one_thread(run)
     in_flight = local.infer(local_obs(observation(5)))["actions"][:2]
     told = {**observation(5), "action_prefix": in_flight}
     with running_server(run, tmp_path) as (port, _), RemotePolicy(f"127.0.0.1:{port}", api_key=KEY) as remote:

@@ -72,7 +72,7 @@ def info(cfg: InfoConfig) -> int:
     run = Path(cfg.policy)
     policy = load_policy(run, device="cpu", encoder_runtime="torch")
     members = getattr(policy, "members", [policy])
-    lead = ck.run_ensemble_members(run)[0] if len(members) > 1 else run  # an ensemble shows its first member's run
+    lead = getattr(policy, "lead", policy).run_dir  # an ensemble shows its first member's run
     status = read_json(lead / ck.STATUS_FILE) if (lead / ck.STATUS_FILE).exists() else {}
     counts = [m.model.parameter_counts() for m in members]
     data = {
@@ -116,9 +116,11 @@ def ensemble_runs(cfg: RunEnsembleConfig) -> int:
     from pivla.policy import load_policy
     from pivla.training.checkpoint import write_run_ensemble
 
-    out = write_run_ensemble(cfg.runs, cfg.out)
-    policy = load_policy(out, device="cpu", encoder_runtime="torch")  # refuses members that do not fit together
-    print(f"ensemble of {len(policy.members)} runs saved to {out}; calibrate it before AURD runs it")
+    def load(directory: Path) -> None:  # refuses members that do not fit together, before anything is written
+        load_policy(directory, device="cpu", encoder_runtime="torch")
+
+    out = write_run_ensemble(cfg.runs, cfg.out, check=load)
+    print(f"ensemble of {len(cfg.runs)} runs saved to {out}; calibrate it before AURD runs it")
     return 0
 
 

@@ -9,6 +9,7 @@ Tensors are always full (the trainer gathers FSDP shards first), so files do not
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -52,10 +53,11 @@ def write_calibration(run_dir: str | Path, calibration: dict, stats: dict | None
         atomic_write_json(Path(run_dir) / "calibration_stats.json", stats)
 
 
-def write_run_ensemble(runs: list[str | Path], out: str | Path) -> Path:
+def write_run_ensemble(runs: list[str | Path], out: str | Path, check: Callable[[Path], object] | None = None) -> Path:
     """A directory that ``load_policy`` reads as the ensemble of ``runs`` (``pivla ensemble-runs``): each run's
     deployed files copied to ``members/<i>/`` (so the directory moves and serves on its own) and
-    ``run_ensemble.json`` naming them. Written atomically; an existing ``out`` is refused."""
+    ``run_ensemble.json`` naming them. Written atomically; an existing ``out`` is refused. ``check`` gets the
+    complete directory before it takes ``out``'s place: an error it raises leaves nothing behind."""
     out = Path(out)
     if len(runs) < 2:
         raise ValueError(f"an ensemble needs at least two runs, got {len(runs)}")
@@ -78,6 +80,8 @@ def write_run_ensemble(runs: list[str | Path], out: str | Path) -> Path:
             members.append(str(member))
         sources = [str(Path(r).resolve()) for r in runs]
         atomic_write_json(tmp / RUN_ENSEMBLE_FILE, {"members": members, "sources": sources})
+        if check is not None:
+            check(tmp)
     return out
 
 
