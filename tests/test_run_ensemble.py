@@ -110,6 +110,10 @@ def test_pivla_ensemble_writes_a_directory_that_moves_and_describes_itself(two_r
     assert info["members"] == 2
     single = load_policy(two_runs[0], device="cpu").model.parameter_counts()["total"]
     assert info["parameters"]["total"] == 2 * single
+    assert main(["bench", "infer", "--policy", str(moved), "--runs", "2", "--warmup", "1", "--threads", "1",
+                 "--json"]) == 0
+    bench = json.loads(capsys.readouterr().out)
+    assert bench["members"] == 2 and bench["parameters"] == 2 * single and bench["infer_ms_median"] > 0
 
 
 def test_bad_ensembles_are_refused_by_name(two_runs, tmp_path):

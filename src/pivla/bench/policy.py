@@ -61,13 +61,15 @@ class InferBenchConfig:
 def run_infer_bench(cfg: InferBenchConfig) -> dict:
     torch.set_num_threads(cfg.threads)
     policy = default_policy(cfg.policy)
+    members = getattr(policy, "members", [policy])  # an ensemble of runs runs each member's forward pass
     obs = random_obs(policy, np.random.default_rng(0))
-    inputs = policy.model_inputs([obs])
+    inputs = [m.model_inputs([obs]) for m in members]
     times, full = [], []
     with torch.inference_mode():
         for i in range(cfg.warmup + cfg.runs):
             t = time.perf_counter()
-            policy.model(inputs)
+            for member, x in zip(members, inputs):
+                member.model(x)
             dt = time.perf_counter() - t
             t = time.perf_counter()
             policy.infer(obs)
@@ -82,7 +84,8 @@ def run_infer_bench(cfg: InferBenchConfig) -> dict:
         "hz": round(1e3 / med, 1),
         "infer_ms_median": round(med_full, 3),
         "infer_hz": round(1e3 / med_full, 1),
-        "threads": cfg.threads, "runs": cfg.runs, "parameters": policy.model.parameter_counts()["total"],
+        "threads": cfg.threads, "runs": cfg.runs, "members": len(members),
+        "parameters": sum(m.model.parameter_counts()["total"] for m in members),
         "image_size": policy.spec.image_size, "cameras": len(policy.spec.cameras),
     }
 
