@@ -154,3 +154,14 @@ def test_quick_benchmark_writes_a_complete_benchmark_json(tmp_path):
     assert main(["report", "--dir", str(tmp_path / "b")]) == 0
     assert json.loads((tmp_path / "b" / "benchmark.json").read_text())["tables"] == before
     assert "Table 7" in report.read_text()
+
+
+def test_the_training_demonstrations_take_the_configured_perturbation_and_validation_ones_none(tmp_path, monkeypatch):
+    made = []
+    monkeypatch.setattr(benchmark, "Collect", lambda cfg: made.append(cfg) or (lambda: None))
+    b = benchmark.Benchmark(BenchmarkConfig(out=str(tmp_path), train_perturb="randomized_scene,recovery=1"))
+    b.collect("main")
+    train, val = made
+    assert (train.suite, train.seed_family, train.perturb) == ("pick_place", "train", "randomized_scene,recovery=1")
+    assert (val.seed_family, val.perturb, val.noise, val.miss) == ("validation", None, 0.0, 0.0)
+    assert BenchmarkConfig().train_perturb == "randomized_scene"

@@ -137,7 +137,7 @@ class Benchmark:
         the headline trains before the other suites are collected. A task's file holds its first N successful
         seeds, so each smaller set of Fig. 17 is the first n episodes of the full set's files."""
         cfg, layout, recipe = self.cfg, self.layout, self.recipes[name]
-        base = CollectConfig(out="", episodes=cfg.train_episodes, seed_family="train", perturb="randomized_scene",
+        base = CollectConfig(out="", episodes=cfg.train_episodes, seed_family="train", perturb=cfg.train_perturb,
                              workers=cfg.workers, realism=cfg.realism, image_size=cfg.image_size, noise=cfg.noise,
                              miss=cfg.miss, place_miss=cfg.place_miss, dispatch=cfg.dispatch)
         for suite in recipe.data:
