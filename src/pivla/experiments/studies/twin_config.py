@@ -82,9 +82,9 @@ class BenchmarkConfig:
     """Share of ``stack`` demonstrations whose carry first goes 2-4 cm beside the block below and comes back
     (docs/experiments.md#a-missed-placement-in-the-demonstrations)."""
     train_perturb: str = "randomized_scene"
-    """Perturbation spec of the training demonstrations (the demo's). ``randomized_scene,recovery=1`` disturbs
-    every demonstration once: displaced 6 cm +15.6 and pushed 6 cm +7.8 points on validation for the
-    weight-averaged ``pick_place`` recipe (docs/experiments.md#an-expert-that-re-approaches-from-above)."""
+    """Perturbation spec of the training demonstrations (the demo's). ``randomized_scene,recovery=1`` disturbs every
+    demonstration once: displaced 6 cm +9.4 points on validation for ``main``'s recipe, at a cost to AdaHorizon and
+    ACT ensembling (docs/experiments.md#an-expert-that-re-approaches-from-above)."""
     max_steps: int | None = None
     """Step limit per episode (default: each task's own)."""
     tasks: str | None = None
