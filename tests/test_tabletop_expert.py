@@ -92,8 +92,9 @@ def test_a_low_tool_off_to_the_side_rises_before_it_moves_over():
 
 def test_a_descent_pushed_off_the_object_goes_back_up_and_over_it():
     """The benchmark's push (6 cm, steps 5-7) fires as the expert descends; returning at grasp height, the fingers
-    dragged the block out of reach (this episode failed, and so did 15 of the 90 pushed validation episodes; 4 fail
-    now). The descent is abandoned, the tool rises, comes back over the block and grasps it where it stood."""
+    dragged the block out of reach (without the re-approach this episode failed, as did 15 of the 90 pushed validation
+    episodes; with it 4 fail). The descent is abandoned, the tool rises, comes back over the block and grasps it where
+    it stood."""
     seed = seeds.seed_for("validation", "push_arm", "block_away", 6)
     env = make_env("pick_place", "block_away", render=False, realism="servo", perturb="push_arm=6")
     expert = make_expert()

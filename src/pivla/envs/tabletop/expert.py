@@ -26,8 +26,8 @@ short of a small object and then hovered with it closed for the rest of the epis
 
 A descent that ends up more than ``OFF_TARGET`` beside the object (the arm pushed, the object displaced) is
 abandoned, and a low tool that far off rises before it moves over: returning at grasp height, the fingers dragged
-the object out of reach, and the expert failed 15 of the twin benchmark's 90 pushed (6 cm) validation episodes,
-4 after this change.
+the object out of reach. Without the re-approach the expert failed 15 of the twin benchmark's 90 pushed (6 cm)
+validation episodes, with it 4.
 
 ``place_miss > 0`` does the same for setting an object down on another: in that share of episodes the carry is first
 *executed* to a point 2-4 cm beside the object below, then brought back over it. Policies trained without it let the
