@@ -101,6 +101,22 @@ def test_libero_run_end_to_end_on_one_task(tmp_path):
     run_libero(cfg)  # every stage done: nothing is redone
     assert (tmp_path / "run" / "policy" / "model.safetensors").stat().st_mtime_ns == mtime
 
+    # a policy trained elsewhere on demonstrations collected elsewhere (one policy for several suites): copied,
+    # calibrated on its own, and the same weights play the same official episodes
+    other = dataclasses.replace(cfg, out=str(tmp_path / "other"), data=str(tmp_path / "run" / "data"),
+                                policy=str(tmp_path / "run" / "policy"), executors=("fixed",))
+    run_libero(other)
+    assert not (tmp_path / "other" / "data").exists() and (tmp_path / "other" / "policy" / "calibration.json").exists()
+    copied = json.loads((tmp_path / "other" / "libero.json").read_text())
+    assert copied["policy_copied_from"] == str((tmp_path / "run" / "policy").resolve())
+    assert set(copied["timings_s"]) == {"copy_policy", "validation_rollouts", "calibrate", "eval_fixed"}
+    assert copied["demonstrations"] == data["demonstrations"]
+    played = [[(r["init_state"], r["success"], r["steps"]) for r in load_rows(d / "eval" / "fixed" / "episodes.jsonl")]
+              for d in (tmp_path / "run", tmp_path / "other")]
+    assert sorted(played[0]) == sorted(played[1])
+    with pytest.raises(ValueError, match="has no demonstrations of libero_spatial task"):
+        run_libero(dataclasses.replace(other, out=str(tmp_path / "third"), data=str(tmp_path / "empty")))
+
 
 @requires_libero
 @pytest.mark.slow

@@ -1,4 +1,5 @@
-"""An ensemble of training runs as one policy: ``pivla ensemble-runs``, its averaged outputs, AURD on it, bad input."""
+"""An ensemble of training runs as one policy: ``pivla ensemble-runs``, its averaged outputs, AURD on it, bad input;
+a run or an ensemble copied for a study of its own."""
 
 import dataclasses
 import json
@@ -14,8 +15,16 @@ from pivla.control.executors import executor_config
 from pivla.data.normalize import ActionStats
 from pivla.data.read import read_dataset
 from pivla.evaluation.runner import EvalConfig, evaluate
+from pivla.experiments.stages import CopyPolicy
 from pivla.policy import Policy, RunEnsemble, load_policy
-from pivla.training.checkpoint import CONFIG_FILE, RUN_ENSEMBLE_FILE, write_calibration, write_run_ensemble
+from pivla.training.checkpoint import (
+    CONFIG_FILE,
+    RUN_ENSEMBLE_FILE,
+    copied_from,
+    copy_policy,
+    write_calibration,
+    write_run_ensemble,
+)
 from pivla.training.trainer import train
 from tests.conftest import tiny_train_config, twin_pick_place_data
 
@@ -145,3 +154,33 @@ def test_bad_ensembles_are_refused_by_name(two_runs, tmp_path):
     with pytest.raises(ValueError, match="member 1"):
         RunEnsemble([a, b])
     assert isinstance(a, Policy)
+
+
+def test_a_copied_policy_acts_as_its_source_and_is_calibrated_on_its_own(two_runs, tmp_path):
+    """``copy_policy`` (``pivla libero run --policy``): a run or an ensemble copied without its checkpoints or
+    calibration; calibrating the copy leaves the source as it was."""
+    write_calibration(two_runs[0], {"tau_low": 0.1, "tau_high": 0.2, "v_thresh": 0.0})
+    ens = write_run_ensemble(two_runs, tmp_path / "ens")
+    for source in (two_runs[0], ens):
+        copy = copy_policy(source, tmp_path / f"copy_{source.name}")
+        assert copied_from(copy) == str(source.resolve()) and copied_from(source) is None
+        assert not (copy / "checkpoints").exists() and not (copy / "calibration.json").exists()
+        original, copied = load_policy(source, device="cpu"), load_policy(copy, device="cpu")
+        obs = _obs(original, seed=5)
+        np.testing.assert_array_equal(copied.infer(obs)["actions"], original.infer(obs)["actions"])
+        write_calibration(copy, {"tau_low": 0.3, "tau_high": 0.4, "v_thresh": 0.0})
+    assert load_policy(two_runs[0], device="cpu").calibration.tau_high == 0.2
+    with pytest.raises(ValueError, match="not a trained run directory"):
+        copy_policy(tmp_path, tmp_path / "nothing")
+    assert not (tmp_path / "nothing").exists()
+
+
+def test_a_study_refuses_a_policy_directory_that_holds_another_policy(two_runs, tmp_path):
+    stage = CopyPolicy(two_runs[0], tmp_path / "policy")
+    assert not stage.done()
+    stage()
+    assert stage.done()
+    with pytest.raises(ValueError, match="a copy of .*run0, not a copy of .*run1"):
+        CopyPolicy(two_runs[1], tmp_path / "policy").done()
+    with pytest.raises(ValueError, match="a policy trained there"):
+        CopyPolicy(two_runs[1], two_runs[0]).done()

@@ -38,7 +38,7 @@ from pivla.experiments.layout import (
 )
 from pivla.io import atomic_write_json, read_json
 from pivla.policy import load_policy
-from pivla.training.checkpoint import write_calibration
+from pivla.training.checkpoint import copied_from, copy_policy, write_calibration
 from pivla.training.config import TrainConfig
 from pivla.training.trainer import train
 
@@ -149,6 +149,27 @@ class Train(Stage):
         if self.on_ray:
             return _ray_trainings([self], self.dispatch)
         return train(self.cfg, resume=checkpointed(Path(self.cfg.out)))
+
+
+@dataclass(frozen=True)
+class CopyPolicy(Stage):
+    """A policy trained elsewhere (``copy_policy``) in the place of a study's own training; a study directory
+    that already holds another policy is refused rather than evaluated under the wrong name."""
+
+    source: Path
+    dest: Path
+
+    def done(self) -> bool:
+        if not self.dest.exists():
+            return False
+        held = copied_from(self.dest)
+        if held != str(self.source.resolve()):
+            what = "a policy trained there" if held is None else f"a copy of {held}"
+            raise ValueError(f"{self.dest} holds {what}, not a copy of {self.source}: choose another --out")
+        return True
+
+    def run(self) -> Path:
+        return copy_policy(self.source, self.dest)
 
 
 def train_all(stages: Sequence[Train]) -> None:

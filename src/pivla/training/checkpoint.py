@@ -27,6 +27,7 @@ STATUS_FILE = "status.json"
 CALIBRATION_FILE = "calibration.json"
 AVERAGE_FILE = "average.safetensors"  # a checkpoint's weight average (--ema-decay)
 RUN_ENSEMBLE_FILE = "run_ensemble.json"  # in a directory that ensembles several runs (``write_run_ensemble``)
+COPIED_FROM_FILE = "copied_from.json"  # in a policy copied from another run (``copy_policy``)
 DEPLOYED_FILES = (MODEL_FILE, CONFIG_FILE, STATS_FILE, TOKENIZER_FILE)  # what ``load_policy`` needs of a run
 
 
@@ -66,23 +67,57 @@ def write_run_ensemble(runs: list[str | Path], out: str | Path, check: Callable[
     for run in runs:
         if (Path(run) / RUN_ENSEMBLE_FILE).exists():
             raise ValueError(f"{run} is an ensemble itself; name its members instead")
-        missing = [f for f in DEPLOYED_FILES if not (Path(run) / f).is_file()]
-        if missing:
-            raise ValueError(f"{run}: not a trained run directory (missing {', '.join(missing)})")
+        _check_deployed(Path(run))
     with atomic_dir(out) as tmp:
         members = []
         for i, run in enumerate(runs):
             member = Path("members") / str(i)
-            (tmp / member).mkdir(parents=True)
-            for f in (*DEPLOYED_FILES, STATUS_FILE):
-                if (Path(run) / f).is_file():
-                    shutil.copy2(Path(run) / f, tmp / member / f)
+            _copy_deployed(Path(run), tmp / member)
             members.append(str(member))
         sources = [str(Path(r).resolve()) for r in runs]
         atomic_write_json(tmp / RUN_ENSEMBLE_FILE, {"members": members, "sources": sources})
         if check is not None:
             check(tmp)
     return out
+
+
+def _check_deployed(run: Path) -> None:
+    missing = [f for f in DEPLOYED_FILES if not (run / f).is_file()]
+    if missing:
+        raise ValueError(f"{run}: not a trained run directory (missing {', '.join(missing)})")
+
+
+def _copy_deployed(run: Path, dest: Path) -> None:
+    """The files ``load_policy`` reads of one run, and its status, into ``dest``."""
+    dest.mkdir(parents=True, exist_ok=True)
+    for f in (*DEPLOYED_FILES, STATUS_FILE):
+        if (run / f).is_file():
+            shutil.copy2(run / f, dest / f)
+
+
+def copy_policy(run: str | Path, out: str | Path) -> Path:
+    """A copy of the policy of ``run`` (a trained run or an ensemble of runs) at ``out``: its deployed files,
+    not its checkpoints, logs or AURD calibration, so that a study can calibrate the copy for its own tasks and
+    leave the source as it was; ``copied_from.json`` names the source. Written atomically."""
+    run, out = Path(run), Path(out)
+    members = run_ensemble_members(run)
+    for member in members or [run]:
+        _check_deployed(member)
+    with atomic_dir(out) as tmp:
+        if members is None:
+            _copy_deployed(run, tmp)
+        else:
+            for member in members:
+                _copy_deployed(member, tmp / member.relative_to(run))
+            shutil.copy2(run / RUN_ENSEMBLE_FILE, tmp / RUN_ENSEMBLE_FILE)
+        atomic_write_json(tmp / COPIED_FROM_FILE, {"source": str(run.resolve())})
+    return out
+
+
+def copied_from(run_dir: str | Path) -> str | None:
+    """The absolute path of the run a ``copy_policy`` copy was made from, or None for any other directory."""
+    path = Path(run_dir) / COPIED_FROM_FILE
+    return read_json(path)["source"] if path.exists() else None
 
 
 def run_ensemble_members(run_dir: str | Path) -> list[Path] | None:

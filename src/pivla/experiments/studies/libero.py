@@ -2,8 +2,9 @@
 
 1. **collect**: N scripted-expert demonstrations per task from scenes sampled (seeded) from the task's BDDL
    placement regions, never from the official init states; with the twin's variety (DART noise, recovered
-   missed grasps);
-2. **train**: the validated recipe at LIBERO's cameras and proprio (``--preset libero``);
+   missed grasps), or those of ``--data``;
+2. **train**: the validated recipe at LIBERO's cameras and proprio (``--preset libero``), or a copy of the policy
+   of ``--policy``, trained elsewhere (e.g. on several suites);
 3. **calibrate**: AURD's thresholds from the policy's own fixed-horizon rollouts on sampled scenes;
 4. **evaluate**: every executor on every official init state of every task (50 per task), paired by state;
 5. **report**: ``DIR/libero.md`` and ``DIR/libero.json``: per task and suite success with Wilson intervals,
@@ -37,8 +38,18 @@ from pivla.experiments.layout import EPISODES, LiberoLayout, demo_files
 from pivla.experiments.plan import Evaluation, EvaluationPlan, eval_config
 from pivla.experiments.render import Block, Lines, Table, markdown, write_markdown
 from pivla.experiments.results import ResultsStore
-from pivla.experiments.stages import Calibrate, Collect, Evaluate, StageTimes, Train, perform, validation_rollouts
+from pivla.experiments.stages import (
+    Calibrate,
+    Collect,
+    CopyPolicy,
+    Evaluate,
+    StageTimes,
+    Train,
+    perform,
+    validation_rollouts,
+)
 from pivla.io import atomic_write_json
+from pivla.training.checkpoint import copied_from
 from pivla.training.config import TrainConfig, libero_preset
 
 log = logging.getLogger(__name__)
@@ -51,7 +62,8 @@ PUBLISHED = {
     "OpenVLA": {"libero_spatial": 84.7, "libero_object": 88.4, "libero_goal": 79.2, "libero_10": 53.7},
 }
 OFFICIAL_INIT_STATES = 50
-STAGES = ("collect", "train", "validation_rollouts", "calibrate")  # the run's order; the evaluations follow
+# the run's order; the evaluations follow (copy_policy instead of train for a policy trained elsewhere)
+STAGES = ("collect", "train", "copy_policy", "validation_rollouts", "calibrate")
 POLICY = "policy"  # the run's one policy
 
 
@@ -104,6 +116,13 @@ class LiberoRunConfig:
     meshes."""
     max_steps: int | None = None
     """Step limit per episode (default: the suite's, OpenVLA-OFT's 220 / 280 / 300 / 520)."""
+    data: str | None = None
+    """Demonstrations of this suite collected before (another run's ``data/``, drawn with the same --mesh-faces),
+    read where they are instead of collecting into DIR/data."""
+    policy: str | None = None
+    """A finished training run or ensemble to evaluate instead of training one here, e.g. one policy for several
+    suites (``pivla train --preset libero --data A --extra-data B C``): copied to DIR/policy, which is calibrated
+    on this suite; the --train options are then unused."""
 
 
 def check_rendering(data: Path, mesh_faces: int) -> None:
@@ -133,20 +152,30 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
     timed = timings.run
 
     # Whole tasks spread over the workers; a finished task's file is kept, so a rerun collects the rest.
-    demos = CollectConfig(out=str(out.data), suite=cfg.suite, env="libero", tasks=cfg.tasks, episodes=cfg.demos,
+    data = Path(cfg.data) if cfg.data else out.data
+    demos = CollectConfig(out=str(data), suite=cfg.suite, env="libero", tasks=cfg.tasks, episodes=cfg.demos,
                           seed=cfg.seed, workers=cfg.workers, image_size=cfg.train.model.image_size, noise=cfg.noise,
                           miss=cfg.miss, libero_init="random", libero_mesh_faces=cfg.mesh_faces,
                           libero_step_factor=cfg.collect_step_factor)
-    perform(Collect(demos, strict=False), "collect", timed=timed)
-    check_rendering(out.data, cfg.mesh_faces)
-    tc = dataclasses.replace(cfg.train, data=str(out.data), out=str(out.policy), seed=cfg.seed, progress=False)
-    perform(Train(tc, cfg.dispatch), "train", timed=timed)
+    if cfg.data:
+        missing = Collect(demos).missing()
+        if missing:
+            raise ValueError(f"--data {data} has no demonstrations of {cfg.suite} task(s) {', '.join(missing)}: "
+                             "collect them into it, or leave --data out")
+    else:
+        perform(Collect(demos, strict=False), "collect", timed=timed)
+    check_rendering(data, cfg.mesh_faces)
+    if cfg.policy:
+        perform(CopyPolicy(Path(cfg.policy), out.policy), "copy_policy", "copy policy", timed)
+    else:
+        tc = dataclasses.replace(cfg.train, data=str(data), out=str(out.policy), seed=cfg.seed, progress=False)
+        perform(Train(tc, cfg.dispatch), "train", timed=timed)
     perform(validation_rollouts(out.policy, out.val_rollouts, out.val_rollouts_eval,
                                 conditions.libero(cfg.suite, init="random"), episodes=cfg.val_episodes,
                                 seed=cfg.seed + 1, realism="ideal", workers=cfg.workers, family=False, tasks=cfg.tasks,
                                 max_steps=cfg.max_steps, libero_mesh_faces=cfg.mesh_faces, dispatch=cfg.dispatch),
             "validation_rollouts", "validation rollouts", timed)
-    perform(Calibrate(out.policy, out.val_rollouts, out.data, cfg.calibration), "calibrate", timed=timed)
+    perform(Calibrate(out.policy, out.val_rollouts, data, cfg.calibration), "calibrate", timed=timed)
     test = plan(cfg)
     for ev in test:
         ec = eval_config(ev, test, policy=out.policy, out=out.evaluation(ev.label), realism="ideal", family=False,
@@ -154,7 +183,7 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
                          max_steps=cfg.max_steps, libero_mesh_faces=cfg.mesh_faces, dispatch=cfg.dispatch)
         perform(Evaluate(ec, expected=cfg.init_states * len(tasks), progress=True), f"eval_{ev.label}",
                 f"eval {ev.label}", timed)
-    return write_libero_report(out.root, cfg.suite, timings.times)
+    return write_libero_report(out.root, cfg.suite, timings.times, data)
 
 
 def expert_table(results: dict) -> str:
@@ -185,19 +214,21 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 60:.0f} min" if seconds >= 60 else f"{seconds:.0f} s"
 
 
-def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None = None) -> Path:
-    """libero.md and libero.json from the evaluations under ``out/eval``, the demonstrations under ``out/data``
-    and the stage times."""
+def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None = None,
+                        data: Path | None = None) -> Path:
+    """libero.md and libero.json from the evaluations under ``out/eval``, the suite's demonstrations (``data``,
+    by default ``out/data``), the stage times and, for a policy trained elsewhere, where it was copied from."""
     layout = LiberoLayout(Path(out))
     store = ResultsStore(layout)
     names = layout.evaluated()
     results = {name: store.results(name)[0] for name in names}
     rows = {name: load_rows(layout.evaluation(name) / EPISODES) for name in names}
-    demos = demonstrations(layout.data)
+    demos = demonstrations(data or layout.data)
     timings = timings or {}
+    source = copied_from(layout.policy)
     report: dict = {"suite": suite, "executors": {}, "paired": {},
                     "published": {k: v.get(suite) for k, v in PUBLISHED.items()},
-                    "demonstrations": demos, "timings_s": timings}
+                    "demonstrations": demos, "timings_s": timings, "policy_copied_from": source}
     for name, res in results.items():
         report["executors"][name] = {
             "success_rate": res["success_rate"], "ci95": res["ci95"], "successes": res["successes"],
@@ -247,7 +278,7 @@ def write_libero_report(out: Path, suite: str, timings: dict[str, float] | None 
         f"# {suite}: official protocol",
         ("Every official init state of every task, one episode each per executor (paired by init state); the policy "
          "trained on demonstrations from sampled scenes only (demos: kept of the expert's attempts). Success with 95% "
-         "Wilson intervals."),
+         "Wilson intervals." + (f" The policy is a copy of {source}." if source else "")),
         Table(["task", "demos", *names], table_rows),
         Lines(tuple(notes)),
         "Published figures on the same suite: " + ", ".join(
