@@ -161,10 +161,12 @@ def with_twin_inputs(model: ModelConfig) -> ModelConfig:
 
 
 def libero_preset() -> TrainConfig:
-    """LIBERO: both cameras at 128 px, proprio without the wrapping roll angle (end effector + gripper)."""
+    """LIBERO: both cameras at 128 px, proprio without the wrapping roll angle (end effector + gripper); the
+    twin's other-suites recipe on top: the weight average deployed and the wrist view left unshifted
+    (docs/experiments.md#libero-spatial-with-the-twins-weight-average-and-an-unshifted-wrist)."""
     base = TrainConfig()
     model = dataclasses.replace(base.model, image_size=128, proprio_keys=("ee_pos", "gripper_states"))
-    return dataclasses.replace(base, model=model)
+    return dataclasses.replace(base, model=model, ema_decay=0.999, augment_shift_cameras=model.cameras[:1])
 
 
 def paper_preset() -> TrainConfig:
