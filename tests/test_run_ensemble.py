@@ -170,6 +170,8 @@ def test_a_copied_policy_acts_as_its_source_and_is_calibrated_on_its_own(two_run
         np.testing.assert_array_equal(copied.infer(obs)["actions"], original.infer(obs)["actions"])
         write_calibration(copy, {"tau_low": 0.3, "tau_high": 0.4, "v_thresh": 0.0})
     assert load_policy(two_runs[0], device="cpu").calibration.tau_high == 0.2
+    with pytest.raises(ValueError, match="exists"):
+        copy_policy(ens, copy)
     with pytest.raises(ValueError, match="not a trained run directory"):
         copy_policy(tmp_path, tmp_path / "nothing")
     assert not (tmp_path / "nothing").exists()

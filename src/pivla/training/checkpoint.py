@@ -98,8 +98,11 @@ def _copy_deployed(run: Path, dest: Path) -> None:
 def copy_policy(run: str | Path, out: str | Path) -> Path:
     """A copy of the policy of ``run`` (a trained run or an ensemble of runs) at ``out``: its deployed files,
     not its checkpoints, logs or AURD calibration, so that a study can calibrate the copy for its own tasks and
-    leave the source as it was; ``copied_from.json`` names the source. Written atomically."""
+    leave the source as it was; ``copied_from.json`` names the source. Written atomically; an existing ``out`` is
+    refused."""
     run, out = Path(run), Path(out)
+    if out.exists():
+        raise ValueError(f"{out} exists; choose a new directory")
     members = run_ensemble_members(run)
     for member in members or [run]:
         _check_deployed(member)
