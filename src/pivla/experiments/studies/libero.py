@@ -122,7 +122,8 @@ class LiberoRunConfig:
     policy: str | None = None
     """A finished training run or ensemble to evaluate instead of training one here, e.g. one policy for several
     suites (``pivla train --preset libero --data A --extra-data B C``): copied to DIR/policy, which is calibrated
-    on this suite; the --train options are then unused."""
+    on this suite; of the --train options only --train.model.image-size is then used, as the picture size of any
+    demonstrations collected."""
 
 
 def check_rendering(data: Path, mesh_faces: int) -> None:
