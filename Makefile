@@ -2,14 +2,22 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.pivla-setup
+DEMO_STAMP := $(VENV)/.pivla-setup-demo
 
-.PHONY: setup setup-libero setup-openpi-client test test-slow demo demo-quick firmware clean
+.PHONY: setup setup-demo setup-libero setup-openpi-client test test-slow demo demo-quick firmware clean
 
 setup: $(STAMP)
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
 	touch $(STAMP)
+
+# the demo needs training and the twin only: pivla[train,sim] installs in about half the time of [all,dev]
+setup-demo: $(DEMO_STAMP)
+
+$(DEMO_STAMP): pyproject.toml scripts/setup.sh
+	PIVLA_EXTRAS=train,sim bash scripts/setup.sh
+	touch $(DEMO_STAMP)
 
 setup-libero: $(STAMP)
 	bash scripts/setup-libero.sh
@@ -25,10 +33,10 @@ test: setup setup-libero setup-openpi-client
 test-slow: setup setup-libero setup-openpi-client
 	$(PY) -m pytest -q -m slow
 
-demo: setup
+demo: setup-demo
 	$(VENV)/bin/pivla demo --out runs/demo
 
-demo-quick: setup
+demo-quick: setup-demo
 	$(VENV)/bin/pivla demo --out runs/demo-quick --quick
 
 firmware:

@@ -25,6 +25,7 @@ from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
 from pivla.envs.backend import BackendConfig
 from pivla.envs.collect import CollectConfig
+from pivla.evaluation.runner import evaluation_pool
 from pivla.experiments import conditions
 from pivla.experiments.layout import DemoLayout
 from pivla.experiments.plan import Evaluation, EvaluationPlan, eval_config
@@ -167,21 +168,24 @@ def run_demo(cfg: DemoConfig) -> Path:
                               perturb=None, noise=0.0, miss=0.0)
     perform(Collect(val, strict=False), "collect_val", "collect validation demos", timed)
     perform(Train(tc, cfg.dispatch), "train", timed=timed)
-    rollouts = validation_rollouts(out.policy, out.val_rollouts, out.val_rollouts_eval, conditions.IN_DISTRIBUTION,
-                                   episodes=cfg.val_episodes, seed=cfg.seed, realism=cfg.realism, workers=cfg.workers,
-                                   family=True, dispatch=cfg.dispatch)
-    res = perform(rollouts, "validation_rollouts", "validation rollouts", timed)
-    if res is not None:
-        _log_eval(res, "validation", "fixed")
-    perform(Calibrate(out.policy, out.val_rollouts, out.val_data, cfg.calibration), "calibrate", timed=timed)
-    for plan in test_plans:
-        for ev in plan:
-            condition, executor = ev.cell.name, ev.label
-            stage = Evaluate(eval_config(ev, plan, policy=out.policy, out=out.evaluation(condition, executor),
-                                         realism=cfg.realism, family=True, workers=cfg.workers, dispatch=cfg.dispatch))
-            res = perform(stage, f"eval_{condition}_{executor}", f"eval {condition} {executor}", timed)
-            if res is not None:
-                _log_eval(res, condition, executor)
+    # one set of evaluation processes for every evaluation below (Ray runs its own)
+    with evaluation_pool(cfg.workers if cfg.dispatch.backend == "local" else 1):
+        rollouts = validation_rollouts(out.policy, out.val_rollouts, out.val_rollouts_eval,
+                                       conditions.IN_DISTRIBUTION, episodes=cfg.val_episodes, seed=cfg.seed,
+                                       realism=cfg.realism, workers=cfg.workers, family=True, dispatch=cfg.dispatch)
+        res = perform(rollouts, "validation_rollouts", "validation rollouts", timed)
+        if res is not None:
+            _log_eval(res, "validation", "fixed")
+        perform(Calibrate(out.policy, out.val_rollouts, out.val_data, cfg.calibration), "calibrate", timed=timed)
+        for plan in test_plans:
+            for ev in plan:
+                condition, executor = ev.cell.name, ev.label
+                stage = Evaluate(eval_config(ev, plan, policy=out.policy, out=out.evaluation(condition, executor),
+                                             realism=cfg.realism, family=True, workers=cfg.workers,
+                                             dispatch=cfg.dispatch))
+                res = perform(stage, f"eval_{condition}_{executor}", f"eval {condition} {executor}", timed)
+                if res is not None:
+                    _log_eval(res, condition, executor)
     report = write_report(out.root)
     timings["total_this_invocation"] = round(time.time() - t_all, 1)
     out.timings.write_text(json.dumps(timings, indent=2) + "\n")
