@@ -147,12 +147,9 @@ _STATE: dict[str, Any] = {}
 
 
 def _init_worker(cfg: EvalConfig, threads: int) -> None:
-    """Load the policy once per worker and evaluation; the envs of an evaluation before are closed. A failure
-    is kept and raised by the first job: an exception in a Pool initializer would make the pool respawn
-    workers forever instead of reporting it."""
+    """Load the policy once per worker and evaluation. A failure is kept and raised by the first job: an
+    exception in a Pool initializer would make the pool respawn workers forever instead of reporting it."""
     torch.set_num_threads(threads)
-    for env in _STATE.get("envs", {}).values():
-        env.close()
     _STATE.pop("error", None)
     _STATE["cfg"] = cfg
     _STATE["envs"] = {}
@@ -184,6 +181,8 @@ def _run_shared_job(item: tuple[int, EvalConfig, int, tuple[int, str, int, bool]
     plays an episode as a worker of that evaluation alone would."""
     evaluation, cfg, threads, job = item
     if _STATE.get("evaluation") != evaluation:
+        for env in _STATE.get("envs", {}).values():  # the evaluation before's (a LIBERO env holds ~1 GB)
+            env.close()
         _init_worker(cfg, threads)
         _STATE["evaluation"] = evaluation
     return _run_job(job)
