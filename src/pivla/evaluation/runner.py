@@ -170,10 +170,16 @@ def _env(task_index: int) -> Any:
             kw.update(mesh_faces=cfg.libero_mesh_faces)
             # Jobs come task after task, so a worker is done with the tasks before. Each LIBERO env kept would
             # hold 0.7-1 GB more (measured on LIBERO-Object): ten tasks in two workers would fill 24 GB.
-            while _STATE["envs"]:
-                _STATE["envs"].popitem()[1].close()
+            _close_envs()
         _STATE["envs"][task_index] = make_env(cfg.env, cfg.suite, task_index, **kw)
     return _STATE["envs"][task_index]
+
+
+def _close_envs() -> None:
+    """Close every env this worker holds (a LIBERO env holds ~1 GB)."""
+    envs = _STATE.get("envs", {})
+    while envs:
+        envs.popitem()[1].close()
 
 
 def _run_shared_job(item: tuple[int, EvalConfig, int, tuple[int, str, int, bool]]) -> dict:
@@ -181,8 +187,7 @@ def _run_shared_job(item: tuple[int, EvalConfig, int, tuple[int, str, int, bool]
     plays an episode as a worker of that evaluation alone would."""
     evaluation, cfg, threads, job = item
     if _STATE.get("evaluation") != evaluation:
-        for env in _STATE.get("envs", {}).values():  # the evaluation before's (a LIBERO env holds ~1 GB)
-            env.close()
+        _close_envs()  # the evaluation before's
         _init_worker(cfg, threads)
         _STATE["evaluation"] = evaluation
     return _run_job(job)
