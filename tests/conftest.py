@@ -6,6 +6,23 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 
+def _scheduling() -> tuple | None:
+    return (os.sched_getscheduler(0), os.sched_getparam(0)) if hasattr(os, "sched_getscheduler") else None
+
+
+SCHEDULING = _scheduling()
+
+
+@pytest.fixture(autouse=True)
+def _scheduling_unchanged():
+    """The thread running the tests stays scheduled as the session started: a real-time policy left behind by a
+    test or its fixtures (SVT-AV1 run as root sets SCHED_FIFO 99) is inherited by every process a later test
+    starts, and one busy at that priority starves the others on its core, so that a later test fails for no
+    reason of its own."""
+    yield
+    assert _scheduling() == SCHEDULING, f"scheduling left at {_scheduling()}, from {SCHEDULING} at the start"
+
+
 @pytest.fixture(scope="session")
 def synthetic_data(tmp_path_factory):
     """A tiny LIBERO-layout dataset (4 goals x 4 episodes x 20 steps, 32 px) shared by core tests."""

@@ -7,6 +7,8 @@ import av
 import numpy as np
 import pyarrow as pa
 
+from pivla.data.lerobot.writer import open_encoder
+
 
 def fixed_list(x) -> pa.Array:
     """Rows of a (T, D) array as the fixed_size_list<float>[D] column lerobot writes for state and action."""
@@ -20,6 +22,7 @@ def encode_video(path: Path, frames: np.ndarray, fps: int, codec: str) -> None:
     with av.open(str(path), "w") as c:
         s = c.add_stream(codec, rate=fps, options={"g": "2", "crf": "20"})
         s.width, s.height, s.pix_fmt = frames.shape[2], frames.shape[1], "yuv420p"
+        open_encoder(s)
         for i, im in enumerate(frames):
             f = av.VideoFrame.from_ndarray(np.ascontiguousarray(im), format="rgb24")
             f.pts, f.time_base = i, Fraction(1, fps)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
-from collections.abc import Iterable
+import os
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -43,6 +45,29 @@ from pivla.io import atomic_dir
 
 CODECS = {"libx264": {}, "libsvtav1": {"preset": "12"}}  # per-codec extra options (lerobot's SVT preset)
 MB = 1024 * 1024
+
+
+@contextlib.contextmanager
+def _scheduling_kept() -> Iterator[None]:
+    """The calling thread's scheduling policy and priority, put back on exit if something changed them."""
+    if not hasattr(os, "sched_getscheduler"):  # macOS: no per-thread policy to lose
+        yield
+        return
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        yield
+    finally:
+        if (os.sched_getscheduler(0), os.sched_getparam(0)) != (policy, param):
+            os.sched_setscheduler(0, policy, param)
+
+
+def open_encoder(stream: av.video.stream.VideoStream) -> None:
+    """Open ``stream``'s encoder, leaving the calling thread's scheduling as it was. SVT-AV1 (libsvtav1), run as
+    root, moves the thread that opens it to SCHED_FIFO priority 99: every process started from that thread later
+    would inherit it, and one busy at that priority starves the others on its core (a robot's control loop, a
+    policy server) indefinitely."""
+    with _scheduling_kept():
+        stream.codec_context.open()
 
 
 # --------------------------------------------------------------------------------------------- writing
@@ -125,6 +150,7 @@ class _VideoSink:
         self.stream = self.container.add_stream(self.cfg.vcodec, rate=self.cfg.fps, options=options)
         self.stream.height, self.stream.width = self.shape[0], self.shape[1]
         self.stream.pix_fmt = "yuv420p"
+        open_encoder(self.stream)
 
     def _mux(self, packets) -> None:
         for packet in packets:
