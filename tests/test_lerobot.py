@@ -272,6 +272,28 @@ def test_size_limits_split_files_and_av1_is_readable(tmp_path):
     assert _compare(eps, read_lerobot(tmp_path / "lr")).mean() < MEAN_TOL
 
 
+@pytest.mark.skipif(LEROBOT_CODEC != "libsvtav1", reason="PyAV has no SVT-AV1 encoder")
+def test_an_av1_encoder_leaves_every_thread_scheduled_as_its_caller(tmp_path):
+    """Run as root, SVT-AV1 sets the thread opening it and its own threads to SCHED_FIFO 99 (as another user it
+    cannot, and this holds trivially)."""
+    import os
+
+    from pivla.data.lerobot.writer import open_encoder
+
+    caller = (os.sched_getscheduler(0), os.sched_getparam(0))
+    with av.open(str(tmp_path / "v.mp4"), "w") as c:
+        s = c.add_stream("libsvtav1", rate=FPS)
+        s.width, s.height, s.pix_fmt = 32, 32, "yuv420p"
+        open_encoder(s)
+        threads = [int(t) for t in os.listdir("/proc/self/task")]
+        assert len(threads) > 2  # the encoder's own threads are running
+        assert [(os.sched_getscheduler(t), os.sched_getparam(t)) for t in threads] == [caller] * len(threads)
+        for p in s.encode(av.VideoFrame.from_ndarray(np.zeros((32, 32, 3), np.uint8), format="rgb24")):
+            c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+
+
 def test_trains_from_a_lerobot_folder(converted, tmp_path):
     from pivla import load_policy
     from pivla.training.trainer import train

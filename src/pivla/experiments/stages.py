@@ -10,11 +10,12 @@ validation demonstrations when it succeeded in none.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -25,7 +26,7 @@ from pivla.data.read import read_dataset
 from pivla.envs import select_tasks
 from pivla.envs.backend import BackendConfig, ray_session
 from pivla.envs.collect import CollectConfig, collect_demos
-from pivla.evaluation.runner import EvalConfig, evaluate
+from pivla.evaluation.runner import EvalConfig, evaluate, evaluation_pool
 from pivla.experiments.conditions import Cell
 from pivla.experiments.layout import (
     calibrated,
@@ -266,6 +267,14 @@ class Calibrate(Stage):
 
     def run(self) -> str:
         return calibrate_on_rollouts(self.run_dir, self.rollouts, self.demos, self.cfg)
+
+
+@contextlib.contextmanager
+def shared_evaluations(workers: int, dispatch: BackendConfig) -> Iterator[None]:
+    """One set of evaluation processes for every local evaluation of ``workers`` in the block (Ray runs its own):
+    a study opens it around a run of evaluations, not around a training, which needs both cores."""
+    with evaluation_pool(workers if dispatch.backend == "local" else 1):
+        yield
 
 
 def validation_rollouts(run: Path, record: Path, results: Path, cell: Cell, *, episodes: int, realism: str,

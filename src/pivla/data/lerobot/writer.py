@@ -47,25 +47,36 @@ CODECS = {"libx264": {}, "libsvtav1": {"preset": "12"}}  # per-codec extra optio
 MB = 1024 * 1024
 
 
+def _threads() -> set[int]:
+    """This process's thread ids (Linux; elsewhere none are listed)."""
+    tasks = Path("/proc/self/task")
+    return {int(t.name) for t in tasks.iterdir()} if tasks.is_dir() else set()
+
+
 @contextlib.contextmanager
 def _scheduling_kept() -> Iterator[None]:
-    """The calling thread's scheduling policy and priority, put back on exit if something changed them."""
+    """On exit, the calling thread and every thread started in the block scheduled as the caller was on entry."""
     if not hasattr(os, "sched_getscheduler"):  # macOS: no per-thread policy to lose
         yield
         return
     policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    before = _threads()
     try:
         yield
     finally:
-        if (os.sched_getscheduler(0), os.sched_getparam(0)) != (policy, param):
-            os.sched_setscheduler(0, policy, param)
+        for tid in (0, *(_threads() - before)):
+            try:
+                if (os.sched_getscheduler(tid), os.sched_getparam(tid)) != (policy, param):
+                    os.sched_setscheduler(tid, policy, param)
+            except ProcessLookupError:  # a thread that has ended since
+                pass
 
 
 def open_encoder(stream: av.video.stream.VideoStream) -> None:
-    """Open ``stream``'s encoder, leaving the calling thread's scheduling as it was. SVT-AV1 (libsvtav1), run as
-    root, moves the thread that opens it to SCHED_FIFO priority 99: every process started from that thread later
-    would inherit it, and one busy at that priority starves the others on its core (a robot's control loop, a
-    policy server) indefinitely."""
+    """Open ``stream``'s encoder, every thread scheduled as the caller is. SVT-AV1 (libsvtav1), run as root, moves
+    the thread that opens it and the threads it starts (37 for one 64-px stream on 2 cores) to SCHED_FIFO priority
+    99: every process started from the caller later would inherit it, and a thread or process busy at that priority
+    starves the others on its core (a robot's control loop, a policy server) for as long as it runs."""
     with _scheduling_kept():
         stream.codec_context.open()
 

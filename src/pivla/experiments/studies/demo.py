@@ -25,13 +25,20 @@ from pivla.control.calibrate import CalibrationConfig
 from pivla.control.executors import executor_config
 from pivla.envs.backend import BackendConfig
 from pivla.envs.collect import CollectConfig
-from pivla.evaluation.runner import evaluation_pool
 from pivla.experiments import conditions
 from pivla.experiments.layout import DemoLayout
 from pivla.experiments.plan import Evaluation, EvaluationPlan, eval_config
 from pivla.experiments.recipes import recipe_config
 from pivla.experiments.report import write_report
-from pivla.experiments.stages import Calibrate, Collect, Evaluate, Train, perform, validation_rollouts
+from pivla.experiments.stages import (
+    Calibrate,
+    Collect,
+    Evaluate,
+    Train,
+    perform,
+    shared_evaluations,
+    validation_rollouts,
+)
 from pivla.model.config import BackboneConfig
 from pivla.training.config import TrainConfig, check_target_divides
 
@@ -168,8 +175,7 @@ def run_demo(cfg: DemoConfig) -> Path:
                               perturb=None, noise=0.0, miss=0.0)
     perform(Collect(val, strict=False), "collect_val", "collect validation demos", timed)
     perform(Train(tc, cfg.dispatch), "train", timed=timed)
-    # one set of evaluation processes for every evaluation below (Ray runs its own)
-    with evaluation_pool(cfg.workers if cfg.dispatch.backend == "local" else 1):
+    with shared_evaluations(cfg.workers, cfg.dispatch):
         rollouts = validation_rollouts(out.policy, out.val_rollouts, out.val_rollouts_eval,
                                        conditions.IN_DISTRIBUTION, episodes=cfg.val_episodes, seed=cfg.seed,
                                        realism=cfg.realism, workers=cfg.workers, family=True, dispatch=cfg.dispatch)

@@ -46,6 +46,7 @@ from pivla.experiments.stages import (
     StageTimes,
     Train,
     perform,
+    shared_evaluations,
     validation_rollouts,
 )
 from pivla.io import atomic_write_json
@@ -171,19 +172,21 @@ def run_libero(cfg: LiberoRunConfig) -> Path:
     else:
         tc = dataclasses.replace(cfg.train, data=str(data), out=str(out.policy), seed=cfg.seed, progress=False)
         perform(Train(tc, cfg.dispatch), "train", timed=timed)
-    perform(validation_rollouts(out.policy, out.val_rollouts, out.val_rollouts_eval,
-                                conditions.libero(cfg.suite, init="random"), episodes=cfg.val_episodes,
-                                seed=cfg.seed + 1, realism="ideal", workers=cfg.workers, family=False, tasks=cfg.tasks,
-                                max_steps=cfg.max_steps, libero_mesh_faces=cfg.mesh_faces, dispatch=cfg.dispatch),
-            "validation_rollouts", "validation rollouts", timed)
-    perform(Calibrate(out.policy, out.val_rollouts, data, cfg.calibration), "calibrate", timed=timed)
-    test = plan(cfg)
-    for ev in test:
-        ec = eval_config(ev, test, policy=out.policy, out=out.evaluation(ev.label), realism="ideal", family=False,
-                         tasks=cfg.tasks, first_init_state=0, seed=cfg.seed + 1000, workers=cfg.workers,
-                         max_steps=cfg.max_steps, libero_mesh_faces=cfg.mesh_faces, dispatch=cfg.dispatch)
-        perform(Evaluate(ec, expected=cfg.init_states * len(tasks), progress=True), f"eval_{ev.label}",
-                f"eval {ev.label}", timed)
+    with shared_evaluations(cfg.workers, cfg.dispatch):
+        perform(validation_rollouts(out.policy, out.val_rollouts, out.val_rollouts_eval,
+                                    conditions.libero(cfg.suite, init="random"), episodes=cfg.val_episodes,
+                                    seed=cfg.seed + 1, realism="ideal", workers=cfg.workers, family=False,
+                                    tasks=cfg.tasks, max_steps=cfg.max_steps, libero_mesh_faces=cfg.mesh_faces,
+                                    dispatch=cfg.dispatch),
+                "validation_rollouts", "validation rollouts", timed)
+        perform(Calibrate(out.policy, out.val_rollouts, data, cfg.calibration), "calibrate", timed=timed)
+        test = plan(cfg)
+        for ev in test:
+            ec = eval_config(ev, test, policy=out.policy, out=out.evaluation(ev.label), realism="ideal", family=False,
+                             tasks=cfg.tasks, first_init_state=0, seed=cfg.seed + 1000, workers=cfg.workers,
+                             max_steps=cfg.max_steps, libero_mesh_faces=cfg.mesh_faces, dispatch=cfg.dispatch)
+            perform(Evaluate(ec, expected=cfg.init_states * len(tasks), progress=True), f"eval_{ev.label}",
+                    f"eval {ev.label}", timed)
     return write_libero_report(out.root, cfg.suite, timings.times, data)
 
 

@@ -27,6 +27,7 @@ The study is its plan (``Benchmark.test_plan``) and its run order (``Benchmark.r
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -53,6 +54,7 @@ from pivla.experiments.stages import (
     Train,
     calibrate_on_rollouts,
     calibration_episodes,
+    shared_evaluations,
     train_all,
 )
 from pivla.experiments.studies.twin_config import (
@@ -105,20 +107,27 @@ class Benchmark:
         atomic_write_json(layout.config, dataclasses.asdict(cfg))
         self.decisions = json.loads(layout.decisions.read_text()) if layout.decisions.exists() else {}
         self._ready(headline)
-        self._decide("hardest", self.choose_hardest)
-        hardest = self.decisions["hardest"]["cell"]
-        for s in range(cfg.seeds):
-            self._timed("failure_rollouts", lambda s=s: self.record_rollouts(s))
+        with self._evaluations():
+            self._decide("hardest", self.choose_hardest)
+            hardest = self.decisions["hardest"]["cell"]
+            for s in range(cfg.seeds):
+                self._timed("failure_rollouts", lambda s=s: self.record_rollouts(s))
         self._ready(round2)
-        self._decide("failure_round", lambda: self.choose_round(hardest))
+        with self._evaluations():
+            self._decide("failure_round", lambda: self.choose_round(hardest))
         for kinds in GROUPS:
             group = of_kind(self.recipes, *kinds)
             self._ready(*group)
-            self._timed("test", lambda group=group: self.test(hardest, group))
-            if kinds == (Kind.SEEN_TASKS,):
-                self._timed("sensitivity", lambda: self.sensitivity(hardest))
+            with self._evaluations():
+                self._timed("test", lambda group=group: self.test(hardest, group))
+                if kinds == (Kind.SEEN_TASKS,):
+                    self._timed("sensitivity", lambda: self.sensitivity(hardest))
             write_benchmark_report(layout.root)
         return layout.report_md
+
+    def _evaluations(self) -> contextlib.AbstractContextManager[None]:
+        """One set of evaluation processes for the evaluations of a stretch between trainings."""
+        return shared_evaluations(self.cfg.workers, self.cfg.dispatch)
 
     def _timed(self, name: str, fn: Callable[[], object]) -> None:
         """Run a stage, its wall time added to timings.json (``StageTimes``)."""
@@ -180,10 +189,11 @@ class Benchmark:
         if pending:
             log.info("[train] %s", ", ".join(t.cfg.out for t in pending))
             self._timed("train", lambda: train_all(pending))
-        for name in names:
-            for seed in range(self.cfg.seeds):
-                if not calibrated(self.layout.policy(name, seed)):
-                    self._timed("calibrate", lambda name=name, seed=seed: self._calibrate(name, seed))
+        with self._evaluations():
+            for name in names:
+                for seed in range(self.cfg.seeds):
+                    if not calibrated(self.layout.policy(name, seed)):
+                        self._timed("calibrate", lambda name=name, seed=seed: self._calibrate(name, seed))
 
     def _calibrate(self, name: str, seed: int) -> None:
         layout, recipe = self.layout, self.recipes[name]
