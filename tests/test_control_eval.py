@@ -325,7 +325,9 @@ def test_eval_threads_respect_omp_and_in_process_eval_restores_them(tiny_policy,
 
 def test_an_evaluation_pool_plays_each_evaluation_as_its_own_workers_would(tiny_policy, tmp_path):
     """One pool serves consecutive evaluations (the demo's cells): every evaluation loads its own policy and
-    envs in each worker, so its episodes are those of an evaluation alone, also when the policy changed."""
+    envs in each worker, so its episodes are those of an evaluation alone, also when the policy changed. Its
+    processes start with the first evaluation and end with the block."""
+    import multiprocessing
     import shutil
 
     from safetensors.torch import load_file, save_file
@@ -337,8 +339,10 @@ def test_an_evaluation_pool_plays_each_evaluation_as_its_own_workers_would(tiny_
     weights = load_file(other / "model.safetensors")
     save_file({k: v + 0.01 if v.is_floating_point() else v for k, v in weights.items()}, other / "model.safetensors")
     with evaluation_pool(2):
+        assert not multiprocessing.active_children()  # nothing to play yet: no process started
         _eval(tiny_policy, tmp_path / "pooled_a", workers=2)
         _eval(other, tmp_path / "pooled_b", workers=2)
+    assert not multiprocessing.active_children()
     _eval(tiny_policy, tmp_path / "alone_a")
     _eval(other, tmp_path / "alone_b")
     _same_episodes(_episodes(tmp_path / "pooled_a"), _episodes(tmp_path / "alone_a"))

@@ -442,7 +442,7 @@ def evaluation_thresholds(calibration: Any, executor: ExecutorConfig) -> dict | 
 
 
 # -- main side --------------------------------------------------------------------------------------------
-_SHARED: dict[str, Any] = {}  # the pool an ``evaluation_pool`` block holds open, and its size
+_SHARED: dict[str, Any] = {}  # an ``evaluation_pool`` block's size, and its pool once an evaluation started it
 _EVALUATIONS = itertools.count()
 
 
@@ -450,16 +450,27 @@ _EVALUATIONS = itertools.count()
 def evaluation_pool(workers: int) -> Iterator[None]:
     """Keep ``workers`` evaluation processes for every local evaluation of that many workers in the block: a
     study of many cells starts its processes (Python, torch, MuJoCo's GL context: ~3 s a cell on 2 cores) once
-    instead of once per cell. Each evaluation still loads its policy and envs afresh in every worker."""
+    instead of once per cell. Each evaluation still loads its policy and envs afresh in every worker. The
+    processes start with the first evaluation that has episodes to play: a resumed study whose evaluations are
+    all done starts none."""
     if workers < 2 or _SHARED:
         yield
         return
-    with mp.get_context("spawn").Pool(workers) as pool:
-        _SHARED.update(pool=pool, workers=workers)
-        try:
-            yield
-        finally:
-            _SHARED.clear()
+    _SHARED["workers"] = workers
+    try:
+        yield
+    finally:
+        pool = _SHARED.pop("pool", None)
+        _SHARED.clear()
+        if pool is not None:
+            pool.terminate()
+
+
+def _shared_pool() -> Any:
+    """The ``evaluation_pool`` block's processes, started on first use."""
+    if "pool" not in _SHARED:
+        _SHARED["pool"] = mp.get_context("spawn").Pool(_SHARED["workers"])
+    return _SHARED["pool"]
 
 
 def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
@@ -523,7 +534,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
                 torch.set_num_threads(caller_threads)
         elif jobs and _SHARED.get("workers") == cfg.workers:
             evaluation = next(_EVALUATIONS)
-            for row in _SHARED["pool"].imap_unordered(_run_shared_job, [(evaluation, cfg, threads, j) for j in jobs]):
+            for row in _shared_pool().imap_unordered(_run_shared_job, [(evaluation, cfg, threads, j) for j in jobs]):
                 consume(row)
         elif jobs:
             with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(cfg, threads)) as pool:
